@@ -1,0 +1,1 @@
+"""Thin ROS 2 nodes and the message conversions they share."""

@@ -1,0 +1,453 @@
+"""Messages <-> core types: the only module where ROS messages and the numerical core meet.
+
+Layouts follow ``docs/CONTRACT.md``:
+
+* measurements: ``sensor_msgs/PointCloud2``, one point per (epoch, target), FLOAT64
+  value and ``sigma_<field>`` fields, ``time_offset`` (FLOAT64, s) and ``target_id``
+  (UINT32), little-endian, ``height = 1``, dense;
+* station states, telemetry, truth and fitted states: ``nav_msgs/Odometry``;
+* triangulation fixes: ``geometry_msgs/PoseWithCovarianceStamped``.
+
+Times: the core computes in float seconds relative to a :class:`TimeBase` (an integer
+number of nanoseconds, by default the scenario epoch), so that float64 keeps
+sub-nanosecond resolution across a long pass.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from nav_msgs.msg import Odometry
+from numpy.typing import NDArray
+from sensor_msgs.msg import PointCloud2, PointField
+
+from orbit_tracking.core import frames
+from orbit_tracking.core.errors import MeasurementError
+from orbit_tracking.core.measurements import FIELDS, sigma_field
+
+__all__ = [
+    'MeasurementBatch',
+    'StationStateSample',
+    'TargetStateSample',
+    'TimeBase',
+    'cloud_to_measurements',
+    'diagnostic_status',
+    'fix_to_msg',
+    'measurements_to_cloud',
+    'msg_to_fix',
+    'odometry_to_station_state',
+    'odometry_to_target_state',
+    'station_state_to_odometry',
+    'target_frame_id',
+    'target_id_from_frame',
+    'target_state_to_odometry',
+]
+
+FloatArray = NDArray[np.float64]
+
+_FLOAT64 = PointField.FLOAT64
+_UINT32 = PointField.UINT32
+_UNKNOWN_ROTATION = -1.0  # REP-conventional "not estimated" variance
+
+
+@dataclass(frozen=True)
+class TimeBase:
+    """Maps ``builtin_interfaces/Time`` stamps to float seconds and back.
+
+    Parameters
+    ----------
+    ref_ns : int
+        Stamp (integer nanoseconds) of float time 0.
+    """
+
+    ref_ns: int
+
+    @classmethod
+    def from_seconds(cls, epoch_s: float) -> TimeBase:
+        return cls(int(round(epoch_s * 1e9)))
+
+    def to_seconds(self, stamp: Time) -> float:
+        return ((int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)) - self.ref_ns) * 1e-9
+
+    def to_ns(self, t: float) -> int:
+        return self.ref_ns + int(round(t * 1e9))
+
+    def to_stamp(self, t: float) -> Time:
+        ns = self.to_ns(t)
+        return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+def stamp_ns(stamp: Time) -> int:
+    """Integer nanoseconds of a stamp."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+@dataclass(frozen=True)
+class MeasurementBatch:
+    """Decoded content of one measurement message.
+
+    Attributes
+    ----------
+    station_id : str
+        ``header.frame_id``.
+    fields : tuple of str
+        Value fields present, in the contract's order.
+    time : ndarray, shape (n,)
+        Epoch of each accepted point (stamp + time_offset) in TimeBase seconds.
+    target_id : ndarray of uint32, shape (n,)
+    values, sigmas : ndarray, shape (n, k)
+        NaN values were not measured.
+    rejected : int
+        Points dropped because a measured value's sigma was not finite and positive
+        or a value was infinite.
+    """
+
+    station_id: str
+    fields: tuple[str, ...]
+    time: FloatArray
+    target_id: NDArray[np.uint32]
+    values: FloatArray
+    sigmas: FloatArray
+    rejected: int
+
+
+def _cloud_dtype(fields: Sequence[str], with_time_offset: bool) -> np.dtype:
+    names, formats, offsets = [], [], []
+    off = 0
+    for f in (*fields, *(sigma_field(f) for f in fields)):
+        names.append(f)
+        formats.append('<f8')
+        offsets.append(off)
+        off += 8
+    if with_time_offset:
+        names.append('time_offset')
+        formats.append('<f8')
+        offsets.append(off)
+        off += 8
+    names.append('target_id')
+    formats.append('<u4')
+    offsets.append(off)
+    off += 4
+    itemsize = (off + 7) // 8 * 8  # keep doubles 8-byte aligned from point to point
+    return np.dtype({'names': names, 'formats': formats, 'offsets': offsets, 'itemsize': itemsize})
+
+
+def measurements_to_cloud(
+    station_id: str,
+    fields: Sequence[str],
+    time: FloatArray,
+    target_id: NDArray[np.uint32],
+    values: FloatArray,
+    sigmas: FloatArray,
+    timebase: TimeBase,
+) -> PointCloud2:
+    """Pack measurement rows into one PointCloud2.
+
+    The header stamp is the first row's epoch; a ``time_offset`` field is added only when
+    rows have different epochs (a batch).
+    """
+    fields = tuple(fields)
+    bad = [f for f in fields if f not in FIELDS]
+    if bad:
+        raise MeasurementError(f'unknown measurement field(s) {bad}')
+    n = time.shape[0]
+    if n == 0:
+        raise MeasurementError('a measurement message needs at least one point')
+    if values.shape != (n, len(fields)) or sigmas.shape != values.shape:
+        raise MeasurementError(
+            f'values {values.shape} and sigmas {sigmas.shape} must be ({n}, {len(fields)})'
+        )
+    ns = np.array([timebase.to_ns(float(t)) for t in time], dtype=np.int64)
+    batched = bool(np.any(ns != ns[0]))
+    dtype = _cloud_dtype(fields, batched)
+    arr = np.zeros(n, dtype=dtype)
+    for j, f in enumerate(fields):
+        arr[f] = values[:, j]
+        arr[sigma_field(f)] = sigmas[:, j]
+    if batched:
+        arr['time_offset'] = (ns - ns[0]) * 1e-9
+    arr['target_id'] = target_id
+    msg = PointCloud2()
+    first_ns = int(ns[0])
+    msg.header.stamp = Time(sec=first_ns // 1_000_000_000, nanosec=first_ns % 1_000_000_000)
+    msg.header.frame_id = station_id
+    msg.height = 1
+    msg.width = n
+    msg.fields = [
+        PointField(name=name, offset=int(dtype.fields[name][1]), datatype=_dt(name), count=1)
+        for name in dtype.names
+    ]
+    msg.is_bigendian = False
+    msg.point_step = dtype.itemsize
+    msg.row_step = dtype.itemsize * n
+    msg.data = arr.tobytes()
+    msg.is_dense = True
+    return msg
+
+
+def _dt(name: str) -> int:
+    return _UINT32 if name == 'target_id' else _FLOAT64
+
+
+def cloud_to_measurements(msg: PointCloud2, timebase: TimeBase) -> MeasurementBatch:
+    """Decode and validate one measurement message.
+
+    Raises
+    ------
+    MeasurementError
+        The message as a whole is unusable: no value field, a field of the wrong type
+        or count, a value field without its sigma field, inconsistent sizes.
+        Individual bad points are dropped and counted in ``rejected`` instead.
+    """
+    station = msg.header.frame_id
+    if not station:
+        raise MeasurementError('measurement message has an empty header.frame_id (station id)')
+    by_name = {f.name: f for f in msg.fields}
+    for f in msg.fields:
+        want = _UINT32 if f.name == 'target_id' else _FLOAT64
+        if (f.name in FIELDS or f.name.startswith('sigma_') or f.name in ('time_offset', 'target_id')) and (
+            f.datatype != want or f.count != 1
+        ):
+            raise MeasurementError(
+                f'field {f.name!r} of station {station!r} has datatype {f.datatype} and count '
+                f'{f.count}; expected datatype {want} ({"UINT32" if want == _UINT32 else "FLOAT64"}) '
+                'and count 1'
+            )
+    fields = tuple(f for f in FIELDS if f in by_name)
+    if not fields:
+        raise MeasurementError(f'message of station {station!r} has no measurement field; expected any of {FIELDS}')
+    missing = [sigma_field(f) for f in fields if sigma_field(f) not in by_name]
+    if missing:
+        raise MeasurementError(f'station {station!r}: value field(s) without sigma field {missing}')
+    n = int(msg.width) * int(msg.height)
+    step = int(msg.point_step)
+    if step <= 0 or len(msg.data) < n * step or int(msg.row_step) * int(msg.height) > len(msg.data):
+        raise MeasurementError(
+            f'station {station!r}: data has {len(msg.data)} bytes, expected width*height*point_step'
+            f' = {n * step}'
+        )
+    for f in msg.fields:
+        size = 4 if f.datatype == _UINT32 else 8
+        if f.offset + size > step:
+            raise MeasurementError(f'station {station!r}: field {f.name!r} lies beyond point_step')
+    endian = '>' if msg.is_bigendian else '<'
+    names = [*fields, *(sigma_field(f) for f in fields)]
+    formats = [f'{endian}f8'] * len(names)
+    offsets = [by_name[nm].offset for nm in names]
+    for extra, fmt in (('time_offset', 'f8'), ('target_id', 'u4')):
+        if extra in by_name:
+            names.append(extra)
+            formats.append(endian + fmt)
+            offsets.append(by_name[extra].offset)
+    dtype = np.dtype({'names': names, 'formats': formats, 'offsets': offsets, 'itemsize': step})
+    row_bytes = int(msg.row_step) if msg.height > 1 else n * step
+    raw = bytes(msg.data)
+    if msg.height > 1 and int(msg.row_step) != int(msg.width) * step:
+        rows = [raw[r * row_bytes : r * row_bytes + msg.width * step] for r in range(msg.height)]
+        raw = b''.join(rows)
+    arr = np.frombuffer(raw, dtype=dtype, count=n)
+    values = np.stack([arr[f].astype(np.float64) for f in fields], axis=1)
+    sigmas = np.stack([arr[sigma_field(f)].astype(np.float64) for f in fields], axis=1)
+    offs = arr['time_offset'].astype(np.float64) if 'time_offset' in names else np.zeros(n)
+    tids = arr['target_id'].astype(np.uint32) if 'target_id' in names else np.zeros(n, np.uint32)
+    measured = ~np.isnan(values)
+    bad_sigma = measured & ~(np.isfinite(sigmas) & (sigmas > 0.0))
+    bad = np.any(bad_sigma | np.isinf(values), axis=1) | ~np.isfinite(offs)
+    empty = ~np.any(measured, axis=1)
+    keep = ~bad & ~empty
+    t0 = timebase.to_seconds(msg.header.stamp)
+    return MeasurementBatch(
+        station_id=station,
+        fields=fields,
+        time=t0 + offs[keep],
+        target_id=tids[keep],
+        values=values[keep],
+        sigmas=sigmas[keep],
+        rejected=int(np.count_nonzero(bad)),
+    )
+
+
+@dataclass(frozen=True)
+class StationStateSample:
+    """A station pose decoded from ``stations/<id>/state``."""
+
+    station_id: str
+    time: float
+    position: FloatArray
+    velocity: FloatArray
+    rotation: FloatArray
+    angular_velocity: FloatArray
+
+
+def station_state_to_odometry(
+    station_id: str,
+    world_frame: str,
+    t: float,
+    position: FloatArray,
+    velocity: FloatArray,
+    rotation: FloatArray,
+    angular_velocity: FloatArray,
+    timebase: TimeBase,
+) -> Odometry:
+    """Station pose as Odometry: pose in the world frame, twist in the station frame."""
+    msg = Odometry()
+    msg.header.stamp = timebase.to_stamp(t)
+    msg.header.frame_id = world_frame
+    msg.child_frame_id = station_id
+    _set_point(msg.pose.pose.position, position)
+    q = frames.matrix_to_quaternion(rotation)
+    o = msg.pose.pose.orientation
+    o.x, o.y, o.z, o.w = (float(v) for v in q)
+    v_body = rotation.T @ velocity
+    _set_vector(msg.twist.twist.linear, v_body)
+    _set_vector(msg.twist.twist.angular, angular_velocity)
+    return msg
+
+
+def odometry_to_station_state(msg: Odometry, timebase: TimeBase) -> StationStateSample:
+    """Decode a station state; raises ``ValueError`` on a non-unit quaternion or NaN."""
+    p = _point(msg.pose.pose.position)
+    o = msg.pose.pose.orientation
+    rot = frames.quaternion_to_matrix([o.x, o.y, o.z, o.w])
+    v = rot @ _vector(msg.twist.twist.linear)
+    w = _vector(msg.twist.twist.angular)
+    if not (np.all(np.isfinite(p)) and np.all(np.isfinite(v))):
+        raise ValueError(f'station state of {msg.child_frame_id!r} has non-finite values')
+    if not msg.child_frame_id:
+        raise ValueError('station state has an empty child_frame_id (station id)')
+    return StationStateSample(msg.child_frame_id, timebase.to_seconds(msg.header.stamp), p, v, rot, w)
+
+
+@dataclass(frozen=True)
+class TargetStateSample:
+    """A target state (truth, telemetry, fitted) decoded from Odometry."""
+
+    target_id: int
+    time: float
+    position: FloatArray
+    velocity: FloatArray
+    position_cov: FloatArray
+    velocity_cov: FloatArray
+
+
+def target_frame_id(target_id: int) -> str:
+    """``child_frame_id`` of a target's states: ``target_<id>``."""
+    return f'target_{int(target_id)}'
+
+
+def target_id_from_frame(frame: str) -> int:
+    """Inverse of :func:`target_frame_id`; plain ``target`` is target 0."""
+    if frame == 'target':
+        return 0
+    if frame.startswith('target_') and frame[7:].isdigit():
+        return int(frame[7:])
+    raise ValueError(f"target frame must be 'target' or 'target_<id>'; got {frame!r}")
+
+
+def target_state_to_odometry(
+    target_id: int,
+    world_frame: str,
+    t: float,
+    position: FloatArray,
+    velocity: FloatArray,
+    position_cov: FloatArray,
+    velocity_cov: FloatArray,
+    timebase: TimeBase,
+) -> Odometry:
+    """Target state as Odometry: identity orientation so the twist is the world velocity;
+    rotation and angular-rate variances are -1 (not estimated)."""
+    msg = Odometry()
+    msg.header.stamp = timebase.to_stamp(t)
+    msg.header.frame_id = world_frame
+    msg.child_frame_id = target_frame_id(target_id)
+    _set_point(msg.pose.pose.position, position)
+    msg.pose.pose.orientation.w = 1.0
+    _set_vector(msg.twist.twist.linear, velocity)
+    msg.pose.covariance = _cov6(position_cov)
+    msg.twist.covariance = _cov6(velocity_cov)
+    return msg
+
+
+def odometry_to_target_state(msg: Odometry, timebase: TimeBase) -> TargetStateSample:
+    pc = np.asarray(msg.pose.covariance, dtype=np.float64).reshape(6, 6)[:3, :3]
+    vc = np.asarray(msg.twist.covariance, dtype=np.float64).reshape(6, 6)[:3, :3]
+    return TargetStateSample(
+        target_id_from_frame(msg.child_frame_id),
+        timebase.to_seconds(msg.header.stamp),
+        _point(msg.pose.pose.position),
+        _vector(msg.twist.twist.linear),
+        pc,
+        vc,
+    )
+
+
+def fix_to_msg(
+    world_frame: str, t: float, position: FloatArray, cov: FloatArray, timebase: TimeBase
+) -> PoseWithCovarianceStamped:
+    """A position fix with its 3x3 covariance (rotation block: -1 on the diagonal)."""
+    msg = PoseWithCovarianceStamped()
+    msg.header.stamp = timebase.to_stamp(t)
+    msg.header.frame_id = world_frame
+    _set_point(msg.pose.pose.position, position)
+    msg.pose.pose.orientation.w = 1.0
+    msg.pose.covariance = _cov6(cov)
+    return msg
+
+
+def msg_to_fix(msg: PoseWithCovarianceStamped, timebase: TimeBase) -> tuple[float, FloatArray, FloatArray]:
+    """``(t, position (3,), covariance (3, 3))`` of a fix."""
+    cov = np.asarray(msg.pose.covariance, dtype=np.float64).reshape(6, 6)[:3, :3]
+    return timebase.to_seconds(msg.header.stamp), _point(msg.pose.pose.position), cov
+
+
+def diagnostic_status(
+    name: str, level: int | bytes, message: str, values: dict[str, object], hardware_id: str = ''
+) -> DiagnosticStatus:
+    """A DiagnosticStatus with ``values`` as KeyValue strings (``level``: OK/WARN/ERROR)."""
+    st = DiagnosticStatus()
+    st.name = name
+    st.level = level if isinstance(level, bytes) else bytes([level])
+    st.message = message
+    st.hardware_id = hardware_id
+    st.values = [KeyValue(key=str(k), value=_fmt(v)) for k, v in values.items()]
+    return st
+
+
+def diagnostic_array(stamp: Time, statuses: Sequence[DiagnosticStatus]) -> DiagnosticArray:
+    arr = DiagnosticArray()
+    arr.header.stamp = stamp
+    arr.status = list(statuses)
+    return arr
+
+
+def _fmt(v: object) -> str:
+    if isinstance(v, float):
+        return f'{v:.9g}'
+    return str(v)
+
+
+def _cov6(cov3: FloatArray) -> NDArray[np.float64]:
+    c = np.zeros((6, 6))
+    c[:3, :3] = np.asarray(cov3, dtype=np.float64).reshape(3, 3)
+    c[3, 3] = c[4, 4] = c[5, 5] = _UNKNOWN_ROTATION
+    return c.ravel()
+
+
+def _set_point(p: object, xyz: FloatArray) -> None:
+    p.x, p.y, p.z = (float(v) for v in xyz)  # type: ignore[attr-defined]
+
+
+def _set_vector(v: object, xyz: FloatArray) -> None:
+    v.x, v.y, v.z = (float(c) for c in xyz)  # type: ignore[attr-defined]
+
+
+def _point(p: object) -> FloatArray:
+    return np.array([p.x, p.y, p.z], dtype=np.float64)  # type: ignore[attr-defined]
+
+
+_vector = _point

@@ -1,0 +1,67 @@
+"""Parameter declarations with descriptions and ranges, shared by every node."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    SetParametersResult,
+)
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+__all__ = ['declare', 'reject_read_only']
+
+
+def declare(
+    node: Node,
+    name: str,
+    default: Any,
+    description: str,
+    *,
+    read_only: bool = False,
+    min_value: float | None = None,
+    max_value: float | None = None,
+    step: float | None = None,
+    param_type: Parameter.Type | None = None,
+) -> Any:
+    """Declare a parameter with a descriptor and return its value.
+
+    ``min_value``/``max_value`` become a FloatingPointRange (float default) or an
+    IntegerRange (int default), so ``ros2 param describe`` shows them and rclpy rejects
+    out-of-range values at start-up and at run time.
+    """
+    desc = ParameterDescriptor(name=name, description=description, read_only=read_only)
+    if min_value is not None or max_value is not None:
+        lo = -1e300 if min_value is None else min_value
+        hi = 1e300 if max_value is None else max_value
+        if isinstance(default, bool):
+            raise ValueError(f'parameter {name}: a range makes no sense for a bool')
+        if isinstance(default, int):
+            desc.integer_range = [
+                IntegerRange(from_value=int(max(lo, -(2**62))), to_value=int(min(hi, 2**62)), step=int(step or 0))
+            ]
+        else:
+            desc.floating_point_range = [
+                FloatingPointRange(from_value=float(lo), to_value=float(hi), step=float(step or 0.0))
+            ]
+    if param_type is not None:
+        node.declare_parameter(name, param_type, desc)
+        value = node.get_parameter(name).value
+        return default if value is None else value
+    return node.declare_parameter(name, default, desc).value
+
+
+def reject_read_only(names: set[str]):  # type: ignore[no-untyped-def]
+    """A set-parameters callback that refuses changes to ``names`` after start-up."""
+
+    def callback(params: list[Parameter]) -> SetParametersResult:
+        for p in params:
+            if p.name in names:
+                return SetParametersResult(successful=False, reason=f'{p.name} is read-only')
+        return SetParametersResult(successful=True)
+
+    return callback

@@ -1,0 +1,100 @@
+"""QoS profiles of the topic contract, defined once for every node."""
+
+from __future__ import annotations
+
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+)
+
+__all__ = [
+    'CLOCK',
+    'DIAGNOSTICS',
+    'LATCHED',
+    'MEASUREMENTS_PUB',
+    'MEASUREMENTS_SUB',
+    'STATE_STREAM',
+    'STATION_STATE_FIXED',
+    'STATION_STATE_MOVING',
+    'STATION_STATE_SUB_LATCHED',
+    'STATION_STATE_SUB_VOLATILE',
+]
+
+MEASUREMENTS_PUB = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=5000,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+)
+"""Stations publish reliably; the deep history lets a slow reader catch up."""
+
+MEASUREMENTS_SUB = QoSProfile(
+    history=HistoryPolicy.KEEP_ALL,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+)
+"""The processing chain reads keep-all, so no measurement is overwritten unseen."""
+
+STATION_STATE_FIXED = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=1,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+"""A fixed station's state is latched: late joiners still get it."""
+
+STATION_STATE_MOVING = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=200,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+)
+
+STATION_STATE_SUB_LATCHED = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=1,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+"""Matches fixed (transient-local) station publishers and receives their latched state."""
+
+STATION_STATE_SUB_VOLATILE = QoSProfile(
+    history=HistoryPolicy.KEEP_ALL,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+)
+"""Matches every station publisher, moving ones included (a transient-local reader would
+not match a volatile writer), so consumers subscribe with both profiles."""
+
+STATE_STREAM = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=1000,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+)
+"""Telemetry, truth, fixes and fitted states."""
+
+LATCHED = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=1,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+"""``trajectory/path`` and ``trajectory/biases``."""
+
+DIAGNOSTICS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=50,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+)
+
+CLOCK = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=1,
+    reliability=ReliabilityPolicy.BEST_EFFORT,
+    durability=DurabilityPolicy.VOLATILE,
+)
+"""As rclpy's own /clock subscription (best effort, depth 1)."""

@@ -1,0 +1,49 @@
+"""The Jazzy start-up/shutdown shape shared by every node's ``main``."""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable
+
+import rclpy
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+
+from orbit_tracking.core.errors import OrbitTrackingError
+
+__all__ = ['run_node']
+
+
+def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> None:
+    """Initialise rclpy, build the node, spin until shutdown (or until the node's ``done``
+    future completes when its ``shutdown_when_done`` parameter is true), then clean up.
+
+    A configuration error while building the node is logged as one clear line and the
+    process exits with status 2 instead of a traceback.
+    """
+    rclpy.init(args=args)
+    node = None
+    code = 0
+    try:
+        try:
+            node = factory()
+        except (OrbitTrackingError, ParameterException, ValueError, KeyError, FileNotFoundError) as exc:
+            rclpy.logging.get_logger('orbit_tracking').fatal(f'cannot start: {exc}')
+            code = 2
+            return
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        done = getattr(node, 'done', None)
+        if done is not None and bool(getattr(node, 'shutdown_when_done', False)):
+            executor.spin_until_future_complete(done)
+        else:
+            executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+        if code:
+            sys.exit(code)
