@@ -57,7 +57,9 @@ class Trajectory(Protocol):
         ...
 
 
-def gravity(r: FloatArray, gm: float, j2: float = 0.0, radius: float = frames.WGS84_A) -> FloatArray:
+def gravity(
+    r: FloatArray, gm: float, j2: float = 0.0, radius: float = frames.WGS84_A
+) -> FloatArray:
     """Point-mass gravity plus the J2 zonal term.
 
     Parameters
@@ -400,9 +402,7 @@ class PoweredAscent(_PosVelTrajectory):
         self.separation_times = tuple(p[1] for p in phases if p[2] >= 0)
 
         def make_rhs(t_mid: float) -> Rhs:
-            for start, end, k, m0 in phases:
-                if start <= t_mid < end:
-                    break
+            start, _, k, m0 = next(p for p in phases if p[0] <= t_mid < p[1])
             if k >= 0:
                 flow = self.stages[k].mass_flow_kg_s
                 thrust = self.stages[k].thrust_n
@@ -509,10 +509,7 @@ class GeodeticTrack:
             raise ValueError('a track needs at least one segment')
         bounds = t_start + np.concatenate([[0.0], np.cumsum([s.duration_s for s in segments])])
         controls = np.array(
-            [
-                [s.lateral_accel_m_s2, s.speed_rate_m_s2, s.path_angle_rate_rad_s]
-                for s in segments
-            ]
+            [[s.lateral_accel_m_s2, s.speed_rate_m_s2, s.path_angle_rate_rad_s] for s in segments]
         )
         self.segments = tuple(segments)
         self.t_start = float(bounds[0])
@@ -551,7 +548,7 @@ class GeodeticTrack:
         y0 = np.array([latitude, longitude, height, speed, heading, path_angle], dtype=float)
         atol = np.array([1e-14, 1e-14, 1e-7, 1e-10, 1e-12, 1e-12])
         self._solution = _integrate(
-            lambda _t: rhs, self.t_start, y0, self.t_start, self.t_end, self._node_t, atol
+            lambda _t: rhs, self.t_start, y0, self.t_start, self.t_end, list(self._node_t), atol
         )
 
     def controls(self, t: float) -> FloatArray:

@@ -40,6 +40,7 @@ __all__ = [
     'predict',
     'residual',
     'sigma_field',
+    'wrap_azimuth',
 ]
 
 FloatArray = NDArray[np.float64]
@@ -72,6 +73,15 @@ KIND_OPTIONAL_FIELDS: dict[str, tuple[str, ...]] = {
     'satellite': (),
 }
 """Fields a kind may add to its own."""
+
+
+def wrap_azimuth(angle: ArrayLike) -> FloatArray:
+    """Angles [rad] wrapped into [0, 2 pi), the contract's azimuth range.
+
+    ``np.mod`` alone returns 2 pi itself for a tiny negative angle (the sum rounds up).
+    """
+    a = np.mod(np.asarray(angle, dtype=np.float64), 2.0 * np.pi)
+    return np.where(a >= 2.0 * np.pi, 0.0, a)
 
 
 def sigma_field(field: str) -> str:
@@ -187,7 +197,7 @@ def predict(
                 jac[:, j, :3] = (dv - rr[:, None] * unit) / rng[:, None]
                 jac[:, j, 3:] = unit
         elif f == 'azimuth':
-            values[:, j] = np.mod(np.arctan2(e, n), 2.0 * np.pi)
+            values[:, j] = wrap_azimuth(np.arctan2(e, n))
             if jac is not None:
                 h2 = e * e + n * n
                 g = np.stack([n / h2, -e / h2, np.zeros(m)], axis=1)

@@ -217,9 +217,7 @@ _SCENARIO = Obj(
         'random_seed': (Num(integer=True, ge=0), 0),
         'gm': (Num(gt=0.0), frames.WGS84_GM),
         'launch': (
-            Nullable(
-                Obj({**_GEODETIC, 'azimuth_deg': (Num(ge=-360.0, le=360.0), REQUIRED)})
-            ),
+            Nullable(Obj({**_GEODETIC, 'azimuth_deg': (Num(ge=-360.0, le=360.0), REQUIRED)})),
             None,
         ),
         'truth_rate_hz': (Num(gt=0.0, le=1000.0), 20.0),
@@ -445,7 +443,9 @@ def scenario_from_dict(data: Mapping[str, Any], source: str = '<dict>') -> Scena
     d = _SCENARIO(data, '', source)
     t0, t1 = d['span']
     if not t0 < t1:
-        raise ConfigError(source, 'span', f'expected [start, end] with start < end, got {d["span"]}')
+        raise ConfigError(
+            source, 'span', f'expected [start, end] with start < end, got {d["span"]}'
+        )
     targets = d['targets']
     target_ids = [t['id'] for t in targets]
     _unique(target_ids, 'targets', source)
@@ -542,17 +542,23 @@ def _station(
     fields = tuple(s['fields']) if s['fields'] is not None else KIND_FIELDS[kind]
     bad = [f for f in fields if f not in allowed]
     if bad:
-        raise ConfigError(source, f'{key}.fields', f'{kind} cannot measure {bad}; allowed {allowed}')
+        raise ConfigError(
+            source, f'{key}.fields', f'{kind} cannot measure {bad}; allowed {allowed}'
+        )
     sigma = {f: v for f, v in s['sigma'].items() if v is not None}
     if set(sigma) != set(fields):
         raise ConfigError(
-            source, f'{key}.sigma', f'expected one sigma per field {list(fields)}, got {sorted(sigma)}'
+            source,
+            f'{key}.sigma',
+            f'expected one sigma per field {list(fields)}, got {sorted(sigma)}',
         )
     bias = {p: v for p, v in s['bias'].items() if v is not None}
     extra = [p for p in bias if p not in fields and p != 'los_theta']
     if extra or ('los_theta' in bias and kind != 'satellite'):
         raise ConfigError(
-            source, f'{key}.bias', f'bias on parameter(s) the station does not measure: {sorted(bias)}'
+            source,
+            f'{key}.bias',
+            f'bias on parameter(s) the station does not measure: {sorted(bias)}',
         )
     ptype = s['platform']['type']
     if ptype == 'fixed' and d['world_frame'] != 'earth':

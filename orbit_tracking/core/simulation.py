@@ -8,6 +8,7 @@ scenario file and its seed fully determine the output.
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -15,7 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from orbit_tracking.core import frames
-from orbit_tracking.core.measurements import StationPose, predict
+from orbit_tracking.core.measurements import StationPose, predict, wrap_azimuth
 from orbit_tracking.core.scenario import (
     Scenario,
     StationConfig,
@@ -135,7 +136,7 @@ def epoch_grid(first: float, rate_hz: float, t_start: float, t_end: float) -> Fl
     dt = 1.0 / rate_hz
     k0 = max(0, int(np.ceil((t_start - first) / dt - 1e-9)))
     k1 = int(np.floor((t_end - first) / dt + 1e-9))
-    return first + np.arange(k0, k1 + 1) * dt
+    return np.asarray(first + np.arange(k0, k1 + 1) * dt, dtype=np.float64)
 
 
 class World:
@@ -190,7 +191,9 @@ class World:
         def wave(amp_deg: float, period: float, phase: float) -> FloatArray:
             return np.radians(amp_deg) * np.sin(2.0 * np.pi * t / period + phase)
 
-        yaw = track.course(t) + wave(att.get('yaw_amplitude_deg', 0.0), att.get('yaw_period_s', 15.0), 0.3)
+        yaw = track.course(t) + wave(
+            att.get('yaw_amplitude_deg', 0.0), att.get('yaw_period_s', 15.0), 0.3
+        )
         pitch = wave(att.get('pitch_amplitude_deg', 0.0), att.get('pitch_period_s', 10.0), 1.1)
         roll = wave(att.get('roll_amplitude_deg', 0.0), att.get('roll_period_s', 10.0), 2.0)
         g = track.geodetic_state(t)
@@ -262,8 +265,10 @@ def simulate_station(world: World, st: StationConfig) -> tuple[MeasurementTable,
     bias = BiasModel(st.bias)
     k = len(st.fields)
     rows_t, rows_id, rows_v = [], [], []
-    pose_all = states.pose() if states.moving else StationPose.fixed(
-        states.position[0], states.rotation[0], grid.size
+    pose_all = (
+        states.pose()
+        if states.moving
+        else StationPose.fixed(states.position[0], states.rotation[0], grid.size)
     )
     for tid in st.targets:
         # the sensor's clock reads t when the true time is t + clock_bias
@@ -287,7 +292,7 @@ def simulate_station(world: World, st: StationConfig) -> tuple[MeasurementTable,
     meas = bias.apply(st.fields, true_vals) + rng.standard_normal(true_vals.shape) * sig
     for j, f in enumerate(st.fields):
         if f == 'azimuth':
-            meas[:, j] = np.mod(meas[:, j], 2.0 * np.pi)
+            meas[:, j] = wrap_azimuth(meas[:, j])
     for w in st.dropouts:
         if w['fields'] is not None:
             inside = _in_windows(time, [w])
@@ -344,8 +349,25 @@ def simulate_truth(world: World) -> dict[int, TargetStates]:
 
 
 def simulate(scenario: Scenario, world: World | None = None) -> SimulationResult:
-    """Run a scenario: every station's measurements and states, telemetry and truth."""
-    world = world or World(scenario)
+    """Run a scenario: every station's measurements and states, telemetry and truth.
+
+    ``world`` reuses truth already integrated (e.g. Monte-Carlo runs over seeds); it must
+    come from a scenario with the same span, targets and platforms. Seed, stations and
+    telemetry are always those of ``scenario``.
+    """
+    if world is None:
+        world = World(scenario)
+    elif world.scenario is not scenario:
+        built = world.scenario
+        truth_keys = ('t_start', 't_end', 'gm', 'launch', 'targets', 'platforms')
+        if any(getattr(built, k) != getattr(scenario, k) for k in truth_keys):
+            raise ValueError(
+                f'world was built for scenario {built.name!r}, whose truth '
+                f'({", ".join(truth_keys)}) differs from {scenario.name!r}'
+            )
+        # the simulation functions read seed and span from world.scenario
+        world = copy.copy(world)
+        world.scenario = scenario
     meas: dict[str, MeasurementTable] = {}
     states: dict[str, StationStates] = {}
     for st in scenario.stations:

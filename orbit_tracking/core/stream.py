@@ -102,7 +102,9 @@ class EventStream:
         for sid in ids:
             st = result.station_states[sid]
             if st.moving:
-                events += [Event(float(t), 'station_state', sid, i, i + 1) for i, t in enumerate(st.time)]
+                events += [
+                    Event(float(t), 'station_state', sid, i, i + 1) for i, t in enumerate(st.time)
+                ]
             else:
                 events.append(Event(t0, 'station_state', sid, 0, 1))
             table: MeasurementTable = result.measurements[sid]
@@ -110,10 +112,14 @@ class EventStream:
                 events.append(Event(float(table.time[b - 1]), 'measurement', sid, a, b))
         if telemetry:
             for tid, ts in result.telemetry.items():
-                events += [Event(float(t), 'telemetry', str(tid), i, i + 1) for i, t in enumerate(ts.time)]
+                events += [
+                    Event(float(t), 'telemetry', str(tid), i, i + 1) for i, t in enumerate(ts.time)
+                ]
         if truth:
             for tid, ts in result.truth.items():
-                events += [Event(float(t), 'truth', str(tid), i, i + 1) for i, t in enumerate(ts.time)]
+                events += [
+                    Event(float(t), 'truth', str(tid), i, i + 1) for i, t in enumerate(ts.time)
+                ]
         events.sort(key=lambda e: (e.time, _ORDER[e.kind], e.key, e.start))
         self.events = events
         self._times = np.array([e.time for e in events])

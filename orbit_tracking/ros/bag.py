@@ -15,7 +15,14 @@ from typing import Any
 import yaml
 from rclpy.qos import QoSProfile
 from rclpy.serialization import deserialize_message, serialize_message
-from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+from rosbags.interfaces import (
+    Qos,
+    QosDurability,
+    QosHistory,
+    QosLiveliness,
+    QosReliability,
+    QosTime,
+)
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
@@ -109,7 +116,10 @@ class BagWriter:
         return self
 
     def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
     ) -> None:
         self.close()
 
@@ -139,7 +149,9 @@ def read_bag(path: str | Path, topics: Iterable[str] | None = None) -> Iterator[
         conns = [c for c in reader.connections if wanted is None or c.topic.lstrip('/') in wanted]
         classes = {c.msgtype: message_class(c.msgtype) for c in conns}
         for conn, t_ns, raw in reader.messages(connections=conns):
-            yield BagMessage(conn.topic, conn.msgtype, t_ns, deserialize_message(raw, classes[conn.msgtype]))
+            yield BagMessage(
+                conn.topic, conn.msgtype, t_ns, deserialize_message(raw, classes[conn.msgtype])
+            )
 
 
 def bag_custom_data(path: str | Path) -> dict[str, str]:

@@ -41,8 +41,12 @@ def simulate_to_bag(
         bag.set_custom_data('orbit_tracking.scenario', scenario.name)
         bag.set_custom_data('orbit_tracking.epoch', repr(scenario.epoch))
         bag.set_custom_data('orbit_tracking.world_frame', scenario.world_frame)
-        bag.set_custom_data('orbit_tracking.gaps', yaml.safe_dump([list(g) for g in scenario.gaps]))
-        for ev in tqdm(stream, total=len(stream), unit='msg', disable=not progress, desc=scenario.name):
+        bag.set_custom_data(
+            'orbit_tracking.gaps', yaml.safe_dump([list(g) for g in scenario.gaps])
+        )
+        for ev in tqdm(
+            stream, total=len(stream), unit='msg', disable=not progress, desc=scenario.name
+        ):
             if ev.kind == 'measurement':
                 profile = qos.MEASUREMENTS_PUB
             elif ev.kind == 'station_state':

@@ -36,12 +36,14 @@ __all__ = [
     'TargetStateSample',
     'TimeBase',
     'cloud_to_measurements',
+    'diagnostic_array',
     'diagnostic_status',
     'fix_to_msg',
     'measurements_to_cloud',
     'msg_to_fix',
     'odometry_to_station_state',
     'odometry_to_target_state',
+    'stamp_ns',
     'station_state_to_odometry',
     'target_frame_id',
     'target_id_from_frame',
@@ -210,26 +212,36 @@ def cloud_to_measurements(msg: PointCloud2, timebase: TimeBase) -> MeasurementBa
     by_name = {f.name: f for f in msg.fields}
     for f in msg.fields:
         want = _UINT32 if f.name == 'target_id' else _FLOAT64
-        if (f.name in FIELDS or f.name.startswith('sigma_') or f.name in ('time_offset', 'target_id')) and (
-            f.datatype != want or f.count != 1
-        ):
+        if (
+            f.name in FIELDS
+            or f.name.startswith('sigma_')
+            or f.name in ('time_offset', 'target_id')
+        ) and (f.datatype != want or f.count != 1):
             raise MeasurementError(
                 f'field {f.name!r} of station {station!r} has datatype {f.datatype} and count '
-                f'{f.count}; expected datatype {want} ({"UINT32" if want == _UINT32 else "FLOAT64"}) '
-                'and count 1'
+                f'{f.count}; expected datatype {want} '
+                f'({"UINT32" if want == _UINT32 else "FLOAT64"}) and count 1'
             )
     fields = tuple(f for f in FIELDS if f in by_name)
     if not fields:
-        raise MeasurementError(f'message of station {station!r} has no measurement field; expected any of {FIELDS}')
+        raise MeasurementError(
+            f'message of station {station!r} has no measurement field; expected any of {FIELDS}'
+        )
     missing = [sigma_field(f) for f in fields if sigma_field(f) not in by_name]
     if missing:
-        raise MeasurementError(f'station {station!r}: value field(s) without sigma field {missing}')
+        raise MeasurementError(
+            f'station {station!r}: value field(s) without sigma field {missing}'
+        )
     n = int(msg.width) * int(msg.height)
     step = int(msg.point_step)
-    if step <= 0 or len(msg.data) < n * step or int(msg.row_step) * int(msg.height) > len(msg.data):
+    if (
+        step <= 0
+        or len(msg.data) < n * step
+        or int(msg.row_step) * int(msg.height) > len(msg.data)
+    ):
         raise MeasurementError(
-            f'station {station!r}: data has {len(msg.data)} bytes, expected width*height*point_step'
-            f' = {n * step}'
+            f'station {station!r}: data has {len(msg.data)} bytes, expected '
+            f'width*height*point_step = {n * step}'
         )
     for f in msg.fields:
         size = 4 if f.datatype == _UINT32 else 8
@@ -283,6 +295,14 @@ class StationStateSample:
     rotation: FloatArray
     angular_velocity: FloatArray
 
+    @property
+    def moving(self) -> bool:
+        """A station with any velocity or turn rate is treated as moving (its states are
+        interpolated in time); a still one keeps its latest pose for every epoch."""
+        return bool(
+            np.linalg.norm(self.velocity) > 1e-6 or np.linalg.norm(self.angular_velocity) > 1e-9
+        )
+
 
 def station_state_to_odometry(
     station_id: str,
@@ -320,7 +340,9 @@ def odometry_to_station_state(msg: Odometry, timebase: TimeBase) -> StationState
         raise ValueError(f'station state of {msg.child_frame_id!r} has non-finite values')
     if not msg.child_frame_id:
         raise ValueError('station state has an empty child_frame_id (station id)')
-    return StationStateSample(msg.child_frame_id, timebase.to_seconds(msg.header.stamp), p, v, rot, w)
+    return StationStateSample(
+        msg.child_frame_id, timebase.to_seconds(msg.header.stamp), p, v, rot, w
+    )
 
 
 @dataclass(frozen=True)
@@ -399,7 +421,9 @@ def fix_to_msg(
     return msg
 
 
-def msg_to_fix(msg: PoseWithCovarianceStamped, timebase: TimeBase) -> tuple[float, FloatArray, FloatArray]:
+def msg_to_fix(
+    msg: PoseWithCovarianceStamped, timebase: TimeBase
+) -> tuple[float, FloatArray, FloatArray]:
     """``(t, position (3,), covariance (3, 3))`` of a fix."""
     cov = np.asarray(msg.pose.covariance, dtype=np.float64).reshape(6, 6)[:3, :3]
     return timebase.to_seconds(msg.header.stamp), _point(msg.pose.pose.position), cov

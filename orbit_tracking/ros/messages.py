@@ -27,7 +27,9 @@ def event_topic(ev: Event) -> str:
     return 'truth/state' if ev.kind == 'truth' else 'telemetry/state'
 
 
-def event_message(result: SimulationResult, ev: Event, timebase: TimeBase) -> PointCloud2 | Odometry:
+def event_message(
+    result: SimulationResult, ev: Event, timebase: TimeBase
+) -> PointCloud2 | Odometry:
     """The message an event stands for."""
     world = result.scenario.world_frame
     a, b = ev.start, ev.stop
@@ -39,12 +41,24 @@ def event_message(result: SimulationResult, ev: Event, timebase: TimeBase) -> Po
     if ev.kind == 'station_state':
         s = result.station_states[ev.key]
         return station_state_to_odometry(
-            ev.key, world, float(s.time[a]), s.position[a], s.velocity[a], s.rotation[a],
-            s.angular_velocity[a], timebase,
+            ev.key,
+            world,
+            float(s.time[a]),
+            s.position[a],
+            s.velocity[a],
+            s.rotation[a],
+            s.angular_velocity[a],
+            timebase,
         )
     src = result.truth if ev.kind == 'truth' else result.telemetry
     ts = src[int(ev.key)]
     return target_state_to_odometry(
-        ts.target_id, world, float(ts.time[a]), ts.position[a], ts.velocity[a],
-        np.diag(ts.position_sigma[a] ** 2), np.diag(ts.velocity_sigma[a] ** 2), timebase,
+        ts.target_id,
+        world,
+        float(ts.time[a]),
+        ts.position[a],
+        ts.velocity[a],
+        np.diag(ts.position_sigma[a] ** 2),
+        np.diag(ts.velocity_sigma[a] ** 2),
+        timebase,
     )

@@ -8,12 +8,11 @@ from rcl_interfaces.msg import (
     FloatingPointRange,
     IntegerRange,
     ParameterDescriptor,
-    SetParametersResult,
 )
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-__all__ = ['declare', 'reject_read_only']
+__all__ = ['declare']
 
 
 def declare(
@@ -42,26 +41,20 @@ def declare(
             raise ValueError(f'parameter {name}: a range makes no sense for a bool')
         if isinstance(default, int):
             desc.integer_range = [
-                IntegerRange(from_value=int(max(lo, -(2**62))), to_value=int(min(hi, 2**62)), step=int(step or 0))
+                IntegerRange(
+                    from_value=int(max(lo, -(2**62))),
+                    to_value=int(min(hi, 2**62)),
+                    step=int(step or 0),
+                )
             ]
         else:
             desc.floating_point_range = [
-                FloatingPointRange(from_value=float(lo), to_value=float(hi), step=float(step or 0.0))
+                FloatingPointRange(
+                    from_value=float(lo), to_value=float(hi), step=float(step or 0.0)
+                )
             ]
     if param_type is not None:
         node.declare_parameter(name, param_type, desc)
         value = node.get_parameter(name).value
         return default if value is None else value
     return node.declare_parameter(name, default, desc).value
-
-
-def reject_read_only(names: set[str]):  # type: ignore[no-untyped-def]
-    """A set-parameters callback that refuses changes to ``names`` after start-up."""
-
-    def callback(params: list[Parameter]) -> SetParametersResult:
-        for p in params:
-            if p.name in names:
-                return SetParametersResult(successful=False, reason=f'{p.name} is read-only')
-        return SetParametersResult(successful=True)
-
-    return callback

@@ -8,9 +8,11 @@ from rclpy.qos import (
     QoSProfile,
     ReliabilityPolicy,
 )
+from rclpy.topic_endpoint_info import TopicEndpointInfo
 
 __all__ = [
     'CLOCK',
+    'matching_reader',
     'DIAGNOSTICS',
     'LATCHED',
     'MEASUREMENTS_PUB',
@@ -18,8 +20,6 @@ __all__ = [
     'STATE_STREAM',
     'STATION_STATE_FIXED',
     'STATION_STATE_MOVING',
-    'STATION_STATE_SUB_LATCHED',
-    'STATION_STATE_SUB_VOLATILE',
 ]
 
 MEASUREMENTS_PUB = QoSProfile(
@@ -52,21 +52,6 @@ STATION_STATE_MOVING = QoSProfile(
     durability=DurabilityPolicy.VOLATILE,
 )
 
-STATION_STATE_SUB_LATCHED = QoSProfile(
-    history=HistoryPolicy.KEEP_LAST,
-    depth=1,
-    reliability=ReliabilityPolicy.RELIABLE,
-    durability=DurabilityPolicy.TRANSIENT_LOCAL,
-)
-"""Matches fixed (transient-local) station publishers and receives their latched state."""
-
-STATION_STATE_SUB_VOLATILE = QoSProfile(
-    history=HistoryPolicy.KEEP_ALL,
-    reliability=ReliabilityPolicy.RELIABLE,
-    durability=DurabilityPolicy.VOLATILE,
-)
-"""Matches every station publisher, moving ones included (a transient-local reader would
-not match a volatile writer), so consumers subscribe with both profiles."""
 
 STATE_STREAM = QoSProfile(
     history=HistoryPolicy.KEEP_LAST,
@@ -98,3 +83,21 @@ CLOCK = QoSProfile(
     durability=DurabilityPolicy.VOLATILE,
 )
 """As rclpy's own /clock subscription (best effort, depth 1)."""
+
+
+def matching_reader(publishers: list[TopicEndpointInfo]) -> QoSProfile | None:
+    """A keep-all reliable reader profile that matches every publisher of a topic.
+
+    Transient-local when all publishers offer it (so a latched fixed-station state is
+    received even though it was published before we subscribed), volatile otherwise (a
+    transient-local reader would not match a volatile writer). None if there is no
+    publisher yet.
+    """
+    if not publishers:
+        return None
+    latched = all(p.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for p in publishers)
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_ALL,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE,
+    )

@@ -14,9 +14,10 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, QoSProfile
 
 from orbit_tracking.ros.bag import BagWriter, message_class
+from orbit_tracking.ros.qos import matching_reader
 
 __all__ = ['DEFAULT_TOPICS', 'RecorderNode']
 
@@ -44,7 +45,9 @@ class RecorderNode(Node):
     storage : {'mcap', 'sqlite3'}
     """
 
-    def __init__(self, out: str | Path, patterns: Sequence[str] = DEFAULT_TOPICS, storage: str = 'mcap') -> None:
+    def __init__(
+        self, out: str | Path, patterns: Sequence[str] = DEFAULT_TOPICS, storage: str = 'mcap'
+    ) -> None:
         super().__init__('orbit_tracking_recorder')
         self.bag = BagWriter(out, storage)
         self.patterns = tuple(patterns)
@@ -64,21 +67,23 @@ class RecorderNode(Node):
                 continue
             msgtype = types[0]
             infos = self.get_publishers_info_by_topic(topic)
-            latched = bool(infos) and all(
-                i.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for i in infos
-            )
-            profile = QoSProfile(
-                history=HistoryPolicy.KEEP_ALL,
-                reliability=ReliabilityPolicy.RELIABLE,
-                durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE,
-            )
-            offered = infos[0].qos_profile if infos else profile
+            profile = matching_reader(infos)
+            if profile is None:
+                continue  # the topic has subscribers only so far; look again later
+            latched = profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+            offered = infos[0].qos_profile
             cls = message_class(msgtype)
             self.subs[topic] = self.create_subscription(
-                cls, topic, lambda data, t=topic, m=msgtype, q=offered: self._write(t, m, data, q), profile, raw=True
+                cls,
+                topic,
+                lambda data, t=topic, m=msgtype, q=offered: self._write(t, m, data, q),
+                profile,
+                raw=True,
             )
             self.counts[topic] = 0
-            self.get_logger().info(f'recording {topic} [{msgtype}]' + (' (latched)' if latched else ''))
+            self.get_logger().info(
+                f'recording {topic} [{msgtype}]' + (' (latched)' if latched else '')
+            )
 
     def _write(self, topic: str, msgtype: str, data: bytes, offered: QoSProfile) -> None:
         now = time.monotonic()

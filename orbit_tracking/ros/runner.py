@@ -28,7 +28,13 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> None
     try:
         try:
             node = factory()
-        except (OrbitTrackingError, ParameterException, ValueError, KeyError, FileNotFoundError) as exc:
+        except (
+            OrbitTrackingError,
+            ParameterException,
+            ValueError,
+            KeyError,
+            FileNotFoundError,
+        ) as exc:
             rclpy.logging.get_logger('orbit_tracking').fatal(f'cannot start: {exc}')
             code = 2
             return

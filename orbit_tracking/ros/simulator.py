@@ -20,7 +20,13 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import PointCloud2
 
 from orbit_tracking.core.scenario import Scenario, load_scenario
-from orbit_tracking.core.simulation import SimulationResult, World, simulate_station, simulate_telemetry, simulate_truth
+from orbit_tracking.core.simulation import (
+    SimulationResult,
+    World,
+    simulate_station,
+    simulate_telemetry,
+    simulate_truth,
+)
 from orbit_tracking.core.stream import Event, EventStream
 from orbit_tracking.ros import qos
 from orbit_tracking.ros.conversions import TimeBase, diagnostic_array, diagnostic_status
@@ -44,10 +50,22 @@ class SimulatorNode(Node):
     def __init__(self, node_name: str, single_station: bool) -> None:
         super().__init__(node_name)
         self.done = Future()
-        name = declare(self, 'scenario', 'seed000_s1', 'Scenario name (config/scenarios) or YAML path.', read_only=True)
+        name = declare(
+            self,
+            'scenario',
+            'seed000_s1',
+            'Scenario name (config/scenarios) or YAML path.',
+            read_only=True,
+        )
         if single_station:
             station_ids: Sequence[str] = [
-                declare(self, 'station_id', '', 'Id of the scenario station to simulate.', read_only=True)
+                declare(
+                    self,
+                    'station_id',
+                    '',
+                    'Id of the scenario station to simulate.',
+                    read_only=True,
+                )
             ]
         else:
             station_ids = declare(
@@ -58,7 +76,12 @@ class SimulatorNode(Node):
                 read_only=True,
             )
         self.rate_factor = declare(
-            self, 'rate_factor', 1.0, 'Scenario seconds streamed per wall-clock second.', min_value=0.01, max_value=10000.0
+            self,
+            'rate_factor',
+            1.0,
+            'Scenario seconds streamed per wall-clock second.',
+            min_value=0.01,
+            max_value=10000.0,
         )
         self.batch_period = declare(
             self,
@@ -70,28 +93,65 @@ class SimulatorNode(Node):
             min_value=0.0,
             max_value=60.0,
         )
-        publish_truth = declare(self, 'publish_truth', not single_station, 'Publish truth/state (simulation only).', read_only=True)
+        publish_truth = declare(
+            self,
+            'publish_truth',
+            not single_station,
+            'Publish truth/state (simulation only).',
+            read_only=True,
+        )
         publish_telemetry = declare(
-            self, 'publish_telemetry', not single_station, 'Publish telemetry/state if the scenario has telemetry.', read_only=True
+            self,
+            'publish_telemetry',
+            not single_station,
+            'Publish telemetry/state if the scenario has telemetry.',
+            read_only=True,
         )
-        self.publish_clock = declare(self, 'publish_clock', False, 'Publish /clock with the scenario stamps.', read_only=True)
+        self.publish_clock = declare(
+            self,
+            'publish_clock',
+            False,
+            'Publish /clock with the scenario stamps.',
+            read_only=True,
+        )
         epoch = declare(
-            self, 'epoch', 0.0, 'Stamp [s] of scenario time 0; 0 uses the scenario file\'s epoch.', read_only=True, min_value=0.0
+            self,
+            'epoch',
+            0.0,
+            "Stamp [s] of scenario time 0; 0 uses the scenario file's epoch.",
+            read_only=True,
+            min_value=0.0,
         )
-        self.start_delay = declare(self, 'start_delay', 0.5, 'Wall seconds to wait before streaming.', min_value=0.0, max_value=3600.0)
+        self.start_delay = declare(
+            self,
+            'start_delay',
+            0.5,
+            'Wall seconds to wait before streaming.',
+            min_value=0.0,
+            max_value=3600.0,
+        )
         self.wait_for_subscribers = declare(
             self,
             'wait_for_subscribers',
             0,
-            'Before streaming, wait until every measurement topic has at least this many subscribers.',
+            'Before streaming, wait until every measurement topic (and moving-station state '
+            'topic) has at least this many subscribers.',
             min_value=0,
             max_value=100,
         )
         self.wait_timeout = declare(
-            self, 'wait_timeout', 30.0, 'Longest wait for subscribers [s] before streaming anyway.', min_value=0.0, max_value=3600.0
+            self,
+            'wait_timeout',
+            30.0,
+            'Longest wait for subscribers [s] before streaming anyway.',
+            min_value=0.0,
+            max_value=3600.0,
         )
         self.shutdown_when_done = declare(
-            self, 'shutdown_when_done', False, 'Exit once every event is streamed (latched states are kept until then).'
+            self,
+            'shutdown_when_done',
+            False,
+            'Exit once every event is streamed (latched states are kept until then).',
         )
 
         self.scenario: Scenario = load_scenario(name)
@@ -100,25 +160,33 @@ class SimulatorNode(Node):
         known = {s.id for s in sc.stations}
         unknown = [s for s in ids if s not in known]
         if unknown:
-            raise ValueError(f'scenario {sc.name} has no station(s) {unknown}; stations: {sorted(known)}')
+            raise ValueError(
+                f'scenario {sc.name} has no station(s) {unknown}; stations: {sorted(known)}'
+            )
         self.timebase = TimeBase.from_seconds(epoch if epoch > 0.0 else sc.epoch)
         t_sim = time.monotonic()
         world = World(sc)
         meas, states = {}, {}
         for sid in ids:
             meas[sid], states[sid] = simulate_station(world, sc.station(sid))
-        tel = simulate_telemetry(world, sc.telemetry) if (publish_telemetry and sc.telemetry) else {}
+        tel = (
+            simulate_telemetry(world, sc.telemetry) if (publish_telemetry and sc.telemetry) else {}
+        )
         truth = simulate_truth(world) if publish_truth else {}
         self.result = SimulationResult(sc, meas, states, truth, tel)
         self.stream = EventStream(self.result, ids, self.batch_period)
         self.get_logger().info(
-            f'scenario {sc.name}: {len(ids)} station(s), {sum(len(m) for m in meas.values())} points, '
-            f'{len(self.stream)} messages over {sc.t_end - sc.t_start:.1f} s at {self.rate_factor:g}x '
-            f'real time (simulated in {time.monotonic() - t_sim:.2f} s)'
+            f'scenario {sc.name}: {len(ids)} station(s), '
+            f'{sum(len(m) for m in meas.values())} points, '
+            f'{len(self.stream)} messages over {sc.t_end - sc.t_start:.1f} s '
+            f'at {self.rate_factor:g}x real time (simulated in {time.monotonic() - t_sim:.2f} s)'
         )
 
         self.meas_pubs: dict[str, Publisher] = {
-            sid: self.create_publisher(PointCloud2, f'stations/{sid}/measurements', qos.MEASUREMENTS_PUB) for sid in ids
+            sid: self.create_publisher(
+                PointCloud2, f'stations/{sid}/measurements', qos.MEASUREMENTS_PUB
+            )
+            for sid in ids
         }
         self.state_pubs: dict[str, Publisher] = {
             sid: self.create_publisher(
@@ -128,9 +196,15 @@ class SimulatorNode(Node):
             )
             for sid in ids
         }
-        self.truth_pub = self.create_publisher(Odometry, 'truth/state', qos.STATE_STREAM) if truth else None
-        self.tel_pub = self.create_publisher(Odometry, 'telemetry/state', qos.STATE_STREAM) if tel else None
-        self.clock_pub = self.create_publisher(Clock, '/clock', qos.CLOCK) if self.publish_clock else None
+        self.truth_pub = (
+            self.create_publisher(Odometry, 'truth/state', qos.STATE_STREAM) if truth else None
+        )
+        self.tel_pub = (
+            self.create_publisher(Odometry, 'telemetry/state', qos.STATE_STREAM) if tel else None
+        )
+        self.clock_pub = (
+            self.create_publisher(Clock, '/clock', qos.CLOCK) if self.publish_clock else None
+        )
         self.diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', qos.DIAGNOSTICS)
         self.sent = dict.fromkeys(ids, 0)
         self._created = time.monotonic()
@@ -142,8 +216,16 @@ class SimulatorNode(Node):
     def _ready(self, now: float) -> bool:
         if now - self._created < self.start_delay:
             return False
-        if self.wait_for_subscribers > 0 and now - self._created < self.start_delay + self.wait_timeout:
-            return all(p.get_subscription_count() >= self.wait_for_subscribers for p in self.meas_pubs.values())
+        if (
+            self.wait_for_subscribers > 0
+            and now - self._created < self.start_delay + self.wait_timeout
+        ):
+            pubs = list(self.meas_pubs.values()) + [
+                self.state_pubs[sid]
+                for sid in self.meas_pubs
+                if self.result.station_states[sid].moving
+            ]
+            return all(p.get_subscription_count() >= self.wait_for_subscribers for p in pubs)
         return True
 
     def _tick(self) -> None:
@@ -164,7 +246,8 @@ class SimulatorNode(Node):
             self._publish_diagnostics(min(t_now, sc.t_end))
         if self.stream.done and not self.done.done():
             self.get_logger().info(
-                'all events streamed: ' + ', '.join(f'{k}: {v} messages' for k, v in self.sent.items())
+                'all events streamed: '
+                + ', '.join(f'{k}: {v} messages' for k, v in self.sent.items())
             )
             self.done.set_result(True)
             if not self.shutdown_when_done:
