@@ -351,7 +351,7 @@ class PoweredAscent(_PosVelTrajectory):
     azimuth : float
         Launch azimuth [rad] from north toward east.
     liftoff_time : float
-        Scenario time of lift-off [s]; the vehicle rests on the pad before it.
+        Scenario time of lift-off [s]; the trajectory starts there (at rest on the pad).
     t_end : float
         End of the integration [s].
     stages : sequence of Stage
