@@ -1,0 +1,451 @@
+"""Alignment of unsynchronised station streams onto common epochs for triangulation.
+
+Each angle-measuring station keeps a time series of samples per target. At a common
+epoch ``t_k = k * period`` the line of sight of a station is interpolated linearly
+between its two bracketing samples (as unit vectors in the world frame, so azimuth
+wrap-around and the rotation of a moving station's frame need no special care), and
+its origin is the station pose interpolated at ``t_k``. Linear interpolation of white
+noise with weights ``(1 − f, f)`` scales the angle variance by ``(1 − f)² + f²``, which
+the line's covariance carries.
+
+The seed-003 low-pass filter ``a'(i) = (1 − ε)/2 (a(i−1) + a(i+1)) + ε a(i)`` can be
+applied to each angle series before alignment (``smoothing_eps``). With ε = 0.95 it
+scales the noise standard deviation by ``sqrt(ε² + (1 − ε)²/2) ≈ 0.951`` only, while it
+correlates neighbouring samples and adds a bias ``(1 − ε)/2 · ä Δt²`` on curving
+angles; it is therefore off by default.
+
+Used unchanged by the live ``triangulation`` node (``process(latest − lag)`` as data
+arrive) and by the offline ``orbit-tracking triangulate`` (``flush``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter, defaultdict
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from orbit_tracking.core.triangulation import LineOfSight, angle_jacobian_local
+
+__all__ = ['AlignConfig', 'Aligner', 'EpochLines', 'PoseTrack', 'low_pass']
+
+FloatArray = NDArray[np.float64]
+
+_ANGLE_PAIRS = (('azimuth', 'elevation', 'angles'), ('los_alpha', 'los_beta', 'los'))
+
+
+@dataclass(frozen=True)
+class AlignConfig:
+    """Alignment settings.
+
+    Attributes
+    ----------
+    period : float
+        Spacing of the common epochs [s]; 0 picks the smallest median sampling interval
+        among the angle stations.
+    max_gap_factor : float
+        Two samples bracket an epoch only if they are at most this many of the station's
+        sampling intervals apart.
+    lag : float
+        Live use: an epoch is processed once data up to ``epoch + lag`` have arrived [s].
+    smoothing_eps : float or None
+        Seed 003's low-pass weight ε (e.g. 0.95); None disables it.
+    """
+
+    period: float = 0.0
+    max_gap_factor: float = 2.5
+    lag: float = 1.0
+    smoothing_eps: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.period < 0.0:
+            raise ValueError(f'period must be >= 0; got {self.period}')
+        if self.max_gap_factor < 1.0:
+            raise ValueError(f'max_gap_factor must be >= 1; got {self.max_gap_factor}')
+        if self.lag < 0.0:
+            raise ValueError(f'lag must be >= 0; got {self.lag}')
+        if self.smoothing_eps is not None and not 0.0 < self.smoothing_eps <= 1.0:
+            raise ValueError(f'smoothing_eps must be in (0, 1]; got {self.smoothing_eps}')
+
+
+def low_pass(values: FloatArray, eps: float, wrap: bool = False) -> tuple[FloatArray, FloatArray]:
+    """Seed 003's three-point low-pass filter (its eqs. 5-5, 5-6).
+
+    Returns the filtered series and the factor by which each sample's noise standard
+    deviation is scaled (1 at the two ends, which are left unfiltered).
+    """
+    v = np.asarray(values, dtype=np.float64)
+    if wrap:
+        v = np.unwrap(v)
+    out = v.copy()
+    scale = np.ones_like(v)
+    if v.size >= 3:
+        out[1:-1] = 0.5 * (1.0 - eps) * (v[:-2] + v[2:]) + eps * v[1:-1]
+        scale[1:-1] = math.sqrt(eps * eps + 0.5 * (1.0 - eps) ** 2)
+    if wrap:
+        out = np.mod(out, 2.0 * np.pi)
+    return out, scale
+
+
+def _rotvec(rot: FloatArray) -> FloatArray:
+    """Rotation vector (axis * angle) of a rotation matrix (angle < pi)."""
+    c = min(1.0, max(-1.0, 0.5 * (np.trace(rot) - 1.0)))
+    angle = math.acos(c)
+    w = np.array([rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0], rot[1, 0] - rot[0, 1]])
+    if angle < 1e-12:
+        return 0.5 * w
+    return w * (angle / (2.0 * math.sin(angle)))
+
+
+def _expm(v: FloatArray) -> FloatArray:
+    """Rotation matrix of a rotation vector (Rodrigues)."""
+    angle = float(np.linalg.norm(v))
+    k = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    if angle < 1e-12:
+        return np.eye(3) + k
+    k /= angle
+    return np.eye(3) + math.sin(angle) * k + (1.0 - math.cos(angle)) * (k @ k)
+
+
+class PoseTrack:
+    """Poses of one station over time: a single pose for a fixed station, else samples
+    interpolated by cubic Hermite (position, with velocity) and slerp (attitude)."""
+
+    def __init__(self) -> None:
+        self.t: list[float] = []
+        self.p: list[FloatArray] = []
+        self.v: list[FloatArray] = []
+        self.r: list[FloatArray] = []
+        self.moving = False
+
+    def add(
+        self,
+        t: float,
+        position: FloatArray,
+        velocity: FloatArray,
+        rotation: FloatArray,
+        moving: bool,
+    ) -> None:
+        self.moving = moving
+        if not moving:
+            self.t, self.p, self.v, self.r = [t], [position], [velocity], [rotation]
+            return
+        i = len(self.t)
+        if self.t and t <= self.t[-1]:
+            i = int(np.searchsorted(self.t, t))
+            if i < len(self.t) and self.t[i] == t:
+                return
+        self.t.insert(i, t)
+        self.p.insert(i, position)
+        self.v.insert(i, velocity)
+        self.r.insert(i, rotation)
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def at(self, t: float, max_gap: float) -> tuple[FloatArray, FloatArray] | None:
+        """(position, rotation) at ``t``, or None when no sample brackets it."""
+        if not self.t:
+            return None
+        if not self.moving:
+            return self.p[0], self.r[0]
+        i = int(np.searchsorted(self.t, t))
+        if i < len(self.t) and abs(self.t[i] - t) < 1e-9:
+            return self.p[i], self.r[i]
+        if i > 0 and abs(self.t[i - 1] - t) < 1e-9:
+            return self.p[i - 1], self.r[i - 1]
+        if i == 0 or i == len(self.t):
+            return None
+        t0, t1 = self.t[i - 1], self.t[i]
+        h = t1 - t0
+        if h > max_gap:
+            return None
+        s = (t - t0) / h
+        h00, h10 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s
+        h01, h11 = -2 * s**3 + 3 * s**2, s**3 - s**2
+        pos = h00 * self.p[i - 1] + h10 * h * self.v[i - 1] + h01 * self.p[i] + h11 * h * self.v[i]
+        r0 = self.r[i - 1]
+        rot = r0 @ _expm(s * _rotvec(r0.T @ self.r[i]))
+        return pos, rot
+
+    def prune(self, before: float) -> None:
+        if not self.moving or len(self.t) < 3:
+            return
+        k = max(0, int(np.searchsorted(self.t, before)) - 1)
+        if k:
+            del self.t[:k], self.p[:k], self.v[:k], self.r[:k]
+
+
+@dataclass
+class _Series:
+    """Samples of one station for one target (angles, optional range, sigmas)."""
+
+    kind: str
+    t: list[float] = field(default_factory=list)
+    a: list[float] = field(default_factory=list)
+    b: list[float] = field(default_factory=list)
+    r: list[float] = field(default_factory=list)
+    sa: list[float] = field(default_factory=list)
+    sb: list[float] = field(default_factory=list)
+    sr: list[float] = field(default_factory=list)
+
+    def add(self, t: float, a: float, b: float, r: float, sa: float, sb: float, sr: float) -> None:
+        if self.t and t <= self.t[-1]:
+            if t == self.t[-1]:
+                return
+            i = int(np.searchsorted(self.t, t))
+            for lst, v in zip(
+                (self.t, self.a, self.b, self.r, self.sa, self.sb, self.sr),
+                (t, a, b, r, sa, sb, sr),
+                strict=True,
+            ):
+                lst.insert(i, v)
+            return
+        for lst, v in zip(
+            (self.t, self.a, self.b, self.r, self.sa, self.sb, self.sr),
+            (t, a, b, r, sa, sb, sr),
+            strict=True,
+        ):
+            lst.append(v)
+
+    _dt_cache: tuple[int, float] = (0, math.inf)
+
+    def median_dt(self) -> float:
+        """Median sampling interval (recomputed as the series doubles in length)."""
+        n, value = self._dt_cache
+        if len(self.t) < 3:
+            return math.inf
+        if len(self.t) >= 2 * n or not math.isfinite(value):
+            value = float(np.median(np.diff(self.t[-200:])))
+            self._dt_cache = (len(self.t), value)
+        return value
+
+    def prune(self, before: float) -> None:
+        k = max(0, int(np.searchsorted(self.t, before)) - 2)
+        if k:
+            for lst in (self.t, self.a, self.b, self.r, self.sa, self.sb, self.sr):
+                del lst[:k]
+
+
+@dataclass(frozen=True)
+class EpochLines:
+    """Lines of sight of one target at one common epoch, and why others were missing."""
+
+    time: float
+    target_id: int
+    lines: tuple[LineOfSight, ...]
+    skipped: Counter[str]
+
+
+class Aligner:
+    """Buffers station poses and angle measurements and yields aligned lines of sight.
+
+    Parameters
+    ----------
+    config : AlignConfig
+    """
+
+    def __init__(self, config: AlignConfig | None = None) -> None:
+        self.config = config or AlignConfig()
+        self.poses: dict[str, PoseTrack] = defaultdict(PoseTrack)
+        self.series: dict[tuple[str, int], _Series] = {}
+        self.latest = -math.inf
+        self.earliest = math.inf
+        self.next_k: int | None = None
+        self.counts: Counter[str] = Counter()
+
+    # -- input ---------------------------------------------------------------------
+    def add_pose(
+        self,
+        station_id: str,
+        t: float,
+        position: FloatArray,
+        velocity: FloatArray,
+        rotation: FloatArray,
+        moving: bool,
+    ) -> None:
+        self.poses[station_id].add(t, position, velocity, rotation, moving)
+
+    def add_measurements(
+        self,
+        station_id: str,
+        fields: Sequence[str],
+        times: FloatArray,
+        target_ids: NDArray[np.uint32],
+        values: FloatArray,
+        sigmas: FloatArray,
+    ) -> int:
+        """Buffer the angle samples of a measurement batch; returns how many were kept.
+
+        Stations without an angle pair (CW radars) are ignored. Samples with a NaN angle
+        are counted as ``nan_measurement``.
+        """
+        idx = {f: i for i, f in enumerate(fields)}
+        pair = next(((a, b, k) for a, b, k in _ANGLE_PAIRS if a in idx and b in idx), None)
+        if pair is None:
+            self.counts['samples_without_angles'] += len(times)
+            return 0
+        fa, fb, kind = pair
+        ir = idx.get('range') if kind == 'angles' else None
+        kept = 0
+        for j in range(len(times)):
+            a, b = values[j, idx[fa]], values[j, idx[fb]]
+            if not (np.isfinite(a) and np.isfinite(b)):
+                self.counts['nan_measurement'] += 1
+                continue
+            r = values[j, ir] if ir is not None else math.nan
+            sr = sigmas[j, ir] if ir is not None else math.nan
+            key = (station_id, int(target_ids[j]))
+            s = self.series.get(key)
+            if s is None:
+                s = self.series[key] = _Series(kind)
+            t = float(times[j])
+            s.add(
+                t,
+                float(a),
+                float(b),
+                float(r),
+                float(sigmas[j, idx[fa]]),
+                float(sigmas[j, idx[fb]]),
+                float(sr),
+            )
+            self.latest = max(self.latest, t)
+            self.earliest = min(self.earliest, t)
+            kept += 1
+        return kept
+
+    # -- output --------------------------------------------------------------------
+    def period(self) -> float:
+        """Epoch spacing: the configured one, else the smallest median sampling interval."""
+        if self.config.period > 0.0:
+            return self.config.period
+        dts = [s.median_dt() for s in self.series.values()]
+        return min(dts) if dts else math.inf
+
+    def process(self, until: float | None = None) -> list[EpochLines]:
+        """Lines at every new common epoch up to ``until`` (default: ``latest − lag``).
+
+        Call with ``until=math.inf`` (or :meth:`flush`) at the end of the data.
+        """
+        period = self.period()
+        if not math.isfinite(period) or not self.series:
+            return []
+        limit = self.latest - self.config.lag if until is None else min(until, self.latest)
+        k_lo = math.ceil(self.earliest / period - 1e-9) if self.next_k is None else self.next_k
+        k_hi = math.floor(limit / period + 1e-9)
+        if k_hi - k_lo > 1_000_000:
+            self.counts['epochs_skipped'] += k_hi - k_lo - 1_000_000
+            k_lo = k_hi - 1_000_000
+        out = []
+        for k in range(k_lo, k_hi + 1):
+            out.extend(self._epoch(k * period))
+        if k_hi >= k_lo:
+            self.next_k = k_hi + 1
+            self._prune(k_hi * period)
+        return out
+
+    def flush(self) -> list[EpochLines]:
+        return self.process(until=math.inf)
+
+    def _epoch(self, t: float) -> list[EpochLines]:
+        by_target: dict[int, list[LineOfSight]] = defaultdict(list)
+        skipped: dict[int, Counter[str]] = defaultdict(Counter)
+        for (sid, tid), s in self.series.items():
+            line, why = self._line_at(sid, s, t)
+            if line is not None:
+                by_target[tid].append(line)
+            elif why:
+                skipped[tid][why] += 1
+        targets = sorted(set(by_target) | set(skipped))
+        return [
+            EpochLines(t, tid, tuple(by_target.get(tid, ())), skipped[tid])
+            for tid in targets
+            if by_target.get(tid) or skipped[tid]
+        ]
+
+    def _max_gap(self, s: _Series) -> float:
+        return (
+            self.config.max_gap_factor * s.median_dt()
+            if len(s.t) >= 3
+            else self.config.max_gap_factor * self.period()
+        )
+
+    def _sample_line(self, sid: str, s: _Series, i: int, max_gap: float) -> LineOfSight | None:
+        pose = self.poses.get(sid)
+        at = pose.at(s.t[i], max_gap) if pose is not None else None
+        if at is None:
+            return None
+        origin, rot = at
+        a, b, sa, sb = s.a[i], s.b[i], s.sa[i], s.sb[i]
+        eps = self.config.smoothing_eps
+        if eps is not None and 0 < i < len(s.t) - 1 and s.t[i + 1] - s.t[i - 1] <= 2 * max_gap:
+            wrap = s.kind == 'angles'
+            a3, scale = low_pass(np.array(s.a[i - 1 : i + 2]), eps, wrap=wrap)
+            b3, _ = low_pass(np.array(s.b[i - 1 : i + 2]), eps)
+            a, b = float(a3[1]), float(b3[1])
+            sa, sb = sa * scale[1], sb * scale[1]
+        u_loc, j_loc = angle_jacobian_local(s.kind, a, b)
+        return LineOfSight(
+            sid,
+            np.asarray(origin, dtype=np.float64),
+            rot @ u_loc,
+            rot @ j_loc,
+            np.diag([sa * sa, sb * sb]),
+            s.r[i],
+            s.sr[i] ** 2,
+        )
+
+    def _line_at(self, sid: str, s: _Series, t: float) -> tuple[LineOfSight | None, str]:
+        if not s.t or t < s.t[0] - 1e-9 or t > s.t[-1] + 1e-9:
+            return None, ''
+        max_gap = self._max_gap(s)
+        i = int(np.searchsorted(s.t, t))
+        if i < len(s.t) and abs(s.t[i] - t) < 1e-9:
+            line = self._sample_line(sid, s, i, max_gap)
+            return (line, '') if line is not None else (None, 'no_station_state')
+        if i > 0 and abs(s.t[i - 1] - t) < 1e-9:
+            line = self._sample_line(sid, s, i - 1, max_gap)
+            return (line, '') if line is not None else (None, 'no_station_state')
+        t0, t1 = s.t[i - 1], s.t[i]
+        if t1 - t0 > max_gap:
+            return None, 'interpolation_gap'
+        l0, l1 = self._sample_line(sid, s, i - 1, max_gap), self._sample_line(sid, s, i, max_gap)
+        pose = self.poses[sid].at(t, max_gap)
+        if l0 is None or l1 is None or pose is None:
+            return None, 'no_station_state'
+        f = (t - t0) / (t1 - t0)
+        u = (1.0 - f) * l0.direction + f * l1.direction
+        u /= np.linalg.norm(u)
+        near = l0 if f < 0.5 else l1
+        jac = (np.eye(3) - np.outer(u, u)) @ near.jacobian
+        c = (1.0 - f) ** 2 + f * f
+        rng = (1.0 - f) * l0.range_m + f * l1.range_m
+        var = (
+            ((1.0 - f) ** 2 * l0.range_var + f * f * l1.range_var)
+            if l0.has_range and l1.has_range
+            else math.nan
+        )
+        return (
+            LineOfSight(
+                sid,
+                np.asarray(pose[0], dtype=np.float64),
+                u,
+                jac,
+                ((1.0 - f) ** 2 * l0.angle_cov + f * f * l1.angle_cov)
+                if c > 0
+                else near.angle_cov,
+                rng,
+                var,
+            ),
+            '',
+        )
+
+    def _prune(self, t: float) -> None:
+        horizon = 4.0 * self.config.max_gap_factor * max(self.period(), 1e-3)
+        for s in self.series.values():
+            s.prune(t - horizon)
+        for p in self.poses.values():
+            p.prune(t - horizon)

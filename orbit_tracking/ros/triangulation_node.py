@@ -1,0 +1,369 @@
+"""``triangulation``: lines of sight of the stations intersected into position fixes.
+
+Subscribes to ``stations/<id>/measurements`` and ``stations/<id>/state`` of the stations
+in its ``stations`` parameter (or of every station that appears), aligns the streams on
+common epochs, and publishes one ``geometry_msgs/PoseWithCovarianceStamped`` per target
+and epoch on ``triangulation/fixes`` (and on ``triangulation/target_<id>/fixes``), plus
+``/diagnostics``: fixes made, rejections by reason, processing time.
+
+Example::
+
+    ros2 run orbit_tracking triangulation --ros-args -p stations:="['sat06', 'sat09']"
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import time
+from collections import Counter
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from nav_msgs.msg import Odometry
+from rclpy.node import Node
+from rclpy.publisher import Publisher
+from sensor_msgs.msg import PointCloud2
+
+from orbit_tracking.core.alignment import AlignConfig
+from orbit_tracking.core.errors import MeasurementError
+from orbit_tracking.core.fixes import TimedFix, TriangulationPipeline
+from orbit_tracking.core.triangulation import REASONS, Gates
+from orbit_tracking.ros import qos
+from orbit_tracking.ros.conversions import (
+    TimeBase,
+    cloud_to_measurements,
+    diagnostic_array,
+    diagnostic_status,
+    fix_to_msg,
+    odometry_to_station_state,
+    stamp_ns,
+)
+from orbit_tracking.ros.parameters import declare
+from orbit_tracking.ros.runner import run_node
+
+__all__ = ['TriangulationNode', 'main']
+
+_STATION_TOPIC = re.compile(r'^/stations/([A-Za-z][A-Za-z0-9_]*)/measurements$')
+
+
+class TriangulationNode(Node):
+    def __init__(self) -> None:
+        super().__init__('triangulation')
+        self.station_filter = [
+            s
+            for s in declare(
+                self,
+                'stations',
+                [''],
+                'Station ids to use; [""] uses every station that appears.',
+                read_only=True,
+            )
+            if s
+        ]
+        period = declare(
+            self,
+            'period',
+            0.0,
+            'Spacing of the fix epochs [s]; 0 = smallest sampling interval of the stations.',
+            read_only=True,
+            min_value=0.0,
+            max_value=60.0,
+        )
+        lag = declare(
+            self,
+            'lag',
+            1.0,
+            'Data time [s] to wait past an epoch before fixing it (late samples).',
+            read_only=True,
+            min_value=0.0,
+            max_value=60.0,
+        )
+        gap = declare(
+            self,
+            'max_gap_factor',
+            2.5,
+            'Largest gap between bracketing samples, in sampling intervals.',
+            read_only=True,
+            min_value=1.0,
+            max_value=100.0,
+        )
+        eps = declare(
+            self,
+            'smoothing_eps',
+            0.0,
+            'Seed 003 low-pass weight epsilon (e.g. 0.95) applied to the angles; 0 = off.',
+            read_only=True,
+            min_value=0.0,
+            max_value=1.0,
+        )
+        gates = Gates(
+            min_intersection_angle_deg=declare(
+                self,
+                'min_intersection_angle_deg',
+                1.0,
+                'Reject fixes whose widest angle between lines is smaller [deg].',
+                read_only=True,
+                min_value=0.0,
+                max_value=89.0,
+            ),
+            max_gdop=declare(
+                self,
+                'max_gdop',
+                100.0,
+                'Reject fixes with a larger geometric dilution of precision.',
+                read_only=True,
+                min_value=1.0,
+                max_value=1e6,
+            ),
+            miss_probability=declare(
+                self,
+                'miss_probability',
+                0.9999,
+                'Reject fixes whose miss distance (chi-square misfit) exceeds this quantile; '
+                '1 = off.',
+                read_only=True,
+                min_value=0.5,
+                max_value=1.0,
+            ),
+        )
+        self.target_id = declare(
+            self,
+            'target_id',
+            -1,
+            'Target published on triangulation/fixes; -1 = every target.',
+            read_only=True,
+            min_value=-1,
+            max_value=2**31 - 1,
+        )
+        self.time_reference = declare(
+            self,
+            'time_reference',
+            0.0,
+            'Stamp [s] of internal time 0; 0 = the first stamp received.',
+            read_only=True,
+            min_value=0.0,
+        )
+        self.flush_after = declare(
+            self,
+            'flush_after',
+            2.0,
+            'Wall seconds without new measurements after which the epochs still held by the '
+            'lag are fixed.',
+            read_only=True,
+            min_value=0.1,
+            max_value=3600.0,
+        )
+        self.state_wait = declare(
+            self,
+            'state_wait_timeout',
+            5.0,
+            'Wall seconds to hold fixes while a station has measurements but no state yet.',
+            read_only=True,
+            min_value=0.0,
+            max_value=3600.0,
+        )
+        self.pipeline = TriangulationPipeline(
+            AlignConfig(
+                period=period,
+                max_gap_factor=gap,
+                lag=lag,
+                smoothing_eps=eps if eps > 0.0 else None,
+            ),
+            gates,
+        )
+        self.timebase: TimeBase | None = (
+            TimeBase.from_seconds(self.time_reference) if self.time_reference > 0.0 else None
+        )
+        self.world_frame = ''
+        self.subs: dict[str, object] = {}
+        self.fix_pub = self.create_publisher(
+            PoseWithCovarianceStamped, 'triangulation/fixes', qos.STATE_STREAM
+        )
+        self.target_pubs: dict[int, Publisher] = {}
+        self.diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', qos.DIAGNOSTICS)
+        self.counts: Counter[str] = Counter()
+        self.proc_ms: list[float] = []
+        self.fix_age: list[float] = []
+        self.first_pending: float | None = None
+        self.last_data = time.monotonic()
+        self.flushed = True
+        self.state_subs: dict[str, object] = {}
+        for sid in self.station_filter:
+            self._subscribe(sid)
+        self.create_timer(0.5, self._discover)
+        self._discover()
+        self.create_timer(1.0, self._publish_diagnostics)
+        self.create_timer(0.2, self._flush_if_idle)
+        self.get_logger().info(
+            'triangulating '
+            + (
+                f'stations {self.station_filter}'
+                if self.station_filter
+                else 'every station that appears'
+            )
+        )
+
+    # -- subscriptions -------------------------------------------------------------
+    def _discover(self) -> None:
+        """Subscribe to stations as their topics appear (all, or those listed), and to each
+        station's state once its publisher is known, with a matching durability."""
+        ns = self.get_namespace().rstrip('/')
+        if not self.station_filter:
+            for topic, _types in self.get_topic_names_and_types():
+                m = _STATION_TOPIC.match(topic[len(ns) :]) if topic.startswith(ns + '/') else None
+                if m and m.group(1) not in self.subs:
+                    self._subscribe(m.group(1))
+        for sid in self.subs:
+            if sid in self.state_subs:
+                continue
+            topic = f'{ns}/stations/{sid}/state'
+            profile = qos.matching_reader(self.get_publishers_info_by_topic(topic))
+            if profile is not None:
+                self.state_subs[sid] = self.create_subscription(
+                    Odometry, topic, self._on_state, profile
+                )
+
+    def _subscribe(self, sid: str) -> None:
+        self.subs[sid] = self.create_subscription(
+            PointCloud2,
+            f'stations/{sid}/measurements',
+            self._on_measurements,
+            qos.MEASUREMENTS_SUB,
+        )
+        self.get_logger().info(f'subscribed to station {sid}')
+
+    def _timebase(self, stamp_ns_: int) -> TimeBase:
+        if self.timebase is None:
+            self.timebase = TimeBase((stamp_ns_ // 1_000_000_000) * 1_000_000_000)
+        return self.timebase
+
+    # -- callbacks -----------------------------------------------------------------
+    def _on_state(self, msg: Odometry) -> None:
+        tb = self._timebase(stamp_ns(msg.header.stamp))
+        try:
+            st = odometry_to_station_state(msg, tb)
+        except ValueError as exc:
+            self._reject('invalid_state', f'station state rejected: {exc}')
+            return
+        if self.world_frame and msg.header.frame_id != self.world_frame:
+            self._reject(
+                'frame_mismatch',
+                f'station {st.station_id} state in frame {msg.header.frame_id!r}, '
+                f'expected {self.world_frame!r}',
+            )
+            return
+        self.world_frame = msg.header.frame_id
+        self.pipeline.add_pose(
+            st.station_id, st.time, st.position, st.velocity, st.rotation, st.moving
+        )
+
+    def _on_measurements(self, msg: PointCloud2) -> None:
+        t_start = time.monotonic()
+        tb = self._timebase(stamp_ns(msg.header.stamp))
+        try:
+            batch = cloud_to_measurements(msg, tb)
+        except MeasurementError as exc:
+            self._reject('invalid_messages', f'measurement message rejected: {exc}')
+            return
+        if batch.rejected:
+            self.counts['rejected_points'] += batch.rejected
+        if self.station_filter and batch.station_id not in self.station_filter:
+            self.counts['foreign_station'] += 1
+            return
+        self.pipeline.add_measurements(
+            batch.station_id, batch.fields, batch.time, batch.target_id, batch.values, batch.sigmas
+        )
+        self.last_data = time.monotonic()
+        self.flushed = False
+        missing = self.pipeline.stations_without_pose()
+        if missing:
+            now = time.monotonic()
+            self.first_pending = self.first_pending or now
+            if now - self.first_pending < self.state_wait:
+                return
+            self.get_logger().warning(
+                f'no state from station(s) {missing} after {self.state_wait:.0f} s; '
+                'fixing without them',
+                throttle_duration_sec=30.0,
+            )
+        fixes = self.pipeline.process()
+        self._publish(fixes, tb)
+        if fixes:
+            self.proc_ms.append(1e3 * (time.monotonic() - t_start))
+            latest = self.pipeline.aligner.latest
+            self.fix_age.extend(latest - f.time for f in fixes)
+
+    def _flush_if_idle(self) -> None:
+        """When the data stop (end of a pass, end of a replay), fix the epochs the lag
+        still holds instead of waiting for data that will not come."""
+        if (
+            self.flushed
+            or self.timebase is None
+            or time.monotonic() - self.last_data < self.flush_after
+        ):
+            return
+        self.flushed = True
+        fixes = self.pipeline.process(until=self.pipeline.aligner.latest)
+        self._publish(fixes, self.timebase)
+        if fixes:
+            self.get_logger().info(
+                f'data idle for {self.flush_after:g} s: fixed {len(fixes)} held epoch(s)'
+            )
+
+    def _publish(self, fixes: list[TimedFix], tb: TimeBase) -> None:
+        frame = self.world_frame or 'earth'
+        for f in fixes:
+            msg = fix_to_msg(frame, f.time, f.fix.position, f.fix.covariance, tb)
+            if self.target_id < 0 or f.target_id == self.target_id:
+                self.fix_pub.publish(msg)
+            pub = self.target_pubs.get(f.target_id)
+            if pub is None:
+                pub = self.target_pubs[f.target_id] = self.create_publisher(
+                    PoseWithCovarianceStamped,
+                    f'triangulation/target_{f.target_id}/fixes',
+                    qos.STATE_STREAM,
+                )
+            pub.publish(msg)
+
+    def _reject(self, key: str, text: str) -> None:
+        self.counts[key] += 1
+        self.get_logger().warning(f'{text} ({self.counts[key]} so far)', throttle_duration_sec=5.0)
+
+    def _publish_diagnostics(self) -> None:
+        counts = Counter(self.pipeline.counts)
+        counts.update(self.counts)
+        rejected = {f'rejected_{r}': counts.get(r, 0) for r in REASONS}
+        other = {k: v for k, v in counts.items() if k not in REASONS and k != 'fixes'}
+        bad = counts.get('invalid_messages', 0) + counts.get('invalid_state', 0)
+        level = DiagnosticStatus.WARN if bad else DiagnosticStatus.OK
+        values: dict[str, object] = {
+            'fixes': counts.get('fixes', 0),
+            **rejected,
+            **other,
+            'stations': ' '.join(sorted(self.subs)),
+            'processing_ms_mean': float(sum(self.proc_ms) / len(self.proc_ms))
+            if self.proc_ms
+            else math.nan,
+            'processing_ms_max': max(self.proc_ms) if self.proc_ms else math.nan,
+            'fix_age_s_mean': float(sum(self.fix_age) / len(self.fix_age))
+            if self.fix_age
+            else math.nan,
+        }
+        self.proc_ms = self.proc_ms[-1000:]
+        self.fix_age = self.fix_age[-1000:]
+        status = diagnostic_status(
+            'triangulation: fixes',
+            level,
+            f'{counts.get("fixes", 0)} fixes' + (f', {bad} invalid messages' if bad else ''),
+            values,
+        )
+        self.diag_pub.publish(diagnostic_array(self.get_clock().now().to_msg(), [status]))
+
+
+def main(args: list[str] | None = None) -> None:
+    run_node(TriangulationNode, args)
+
+
+if __name__ == '__main__':
+    main()
