@@ -6,6 +6,10 @@ Subcommands::
     orbit-tracking simulate --scenario NAME --out DIR write a scenario to a rosbag2
     orbit-tracking record --out DIR                   record the contract topics from DDS
     orbit-tracking triangulate BAG --out DIR          fixes.csv from a bag's lines of sight
+    orbit-tracking demo [--scenario NAME] [--out DIR] the main job: simulate, triangulate,
+                                                      a live pass over DDS, report with plots
+    orbit-tracking report RUN_DIR                     redraw the report of a demo run
+    orbit-tracking bench [--seeds N] [--write-docs]   accuracy vs truth and CRB, wall time
 
 Run ``orbit-tracking <command> --help`` for the options of each.
 """
@@ -16,6 +20,9 @@ import argparse
 import sys
 import time
 from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
 
 from orbit_tracking.core.errors import OrbitTrackingError
 
@@ -52,7 +59,12 @@ def _cmd_record(args: argparse.Namespace) -> int:
     from orbit_tracking.ros.recorder import DEFAULT_TOPICS, RecorderNode
 
     rclpy.init()
-    node = RecorderNode(args.out, args.topics or DEFAULT_TOPICS, args.storage)
+    try:
+        node = RecorderNode(args.out, args.topics or DEFAULT_TOPICS, args.storage)
+    except BaseException:
+        # e.g. --out exists: leave rclpy as we found it, so main() can report and return
+        rclpy.try_shutdown()
+        raise
     start = time.monotonic()
     try:
         while rclpy.ok():
@@ -95,6 +107,146 @@ def _cmd_triangulate(args: argparse.Namespace) -> int:
     for line in report.lines():
         print(line)
     print(f'wrote {", ".join(str(f) for f in report.files)} ({time.monotonic() - t0:.1f} s)')
+    return 0
+
+
+def _fixes_from_csv(folder: Path, epoch: float) -> list:
+    """TimedFix list back from a triangulation folder (fixes_target_<id>.csv if present)."""
+    from orbit_tracking.core.fixes import TimedFix, read_fixes_csv
+    from orbit_tracking.core.triangulation import Fix
+
+    files = sorted(folder.glob('fixes_target_*.csv')) or [folder / 'fixes.csv']
+    out = []
+    for f in files:
+        tid = int(f.stem.rsplit('_', 1)[1]) if f.stem.startswith('fixes_target_') else 0
+        tab = read_fixes_csv(f)
+        for i in range(len(tab['time'])):
+            fix = Fix(
+                tab['position'][i],
+                tab['covariance'][i],
+                float(tab['miss_distance'][i]),
+                int(tab['n_lines'][i]),
+                (),
+                float('nan'),
+                0,
+                float('nan'),
+                float('nan'),
+            )
+            out.append(TimedFix(float(tab['time'][i] - epoch), tid, fix))
+    return out
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    import shutil
+
+    from orbit_tracking.core.scenario import load_scenario
+    from orbit_tracking.core.simulation import World, simulate
+    from orbit_tracking.report import ReportInputs, build_report
+    from orbit_tracking.ros.bagsim import simulate_to_bag
+    from orbit_tracking.ros.offline import triangulate_bag
+
+    sc = load_scenario(args.scenario)
+    out = Path(args.out or Path('runs') / sc.name)
+    if out.exists():
+        if not args.force:
+            raise FileExistsError(
+                f'{out} exists; pass --force to replace it or choose another --out'
+            )
+        shutil.rmtree(out)
+    out.mkdir(parents=True)
+    t_all = time.monotonic()
+    steps = 4 if args.live else 3
+    print(f'[1/{steps}] simulate {sc.name} -> {out / "bag"}')
+    t0 = time.monotonic()
+    n = simulate_to_bag(sc, out / 'bag', progress=not args.quiet)
+    summary = [f'simulate: {n} messages written to {out / "bag"} ({time.monotonic() - t0:.1f} s)']
+    print('   ' + summary[-1])
+    print(f'[2/{steps}] triangulate -> {out / "triangulation"}')
+    t0 = time.monotonic()
+    tri = triangulate_bag(out / 'bag', out / 'triangulation', progress=not args.quiet)
+    summary += ['triangulate: ' + line for line in tri.lines()]
+    summary.append(f'triangulate: {time.monotonic() - t0:.1f} s')
+    for line in summary[1:]:
+        print('   ' + line)
+    live_lines: list[str] = []
+    if args.live:
+        from orbit_tracking.ros.live import run_live
+
+        print(
+            f'[3/{steps}] live pass over DDS: scenario_sim -> triangulation '
+            f'(x{args.rate_factor:g})'
+        )
+        live = run_live(sc.name, out, args.rate_factor)
+        offline_ns = {}
+        for f in tri.fixes:
+            offline_ns.setdefault(tri.context.tb(0).to_ns(f.time), []).append(f.fix.position)
+        diffs = [
+            min(np.linalg.norm(p - q) for q in offline_ns[s])
+            for s, p in zip(live.stamps_ns, live.positions, strict=True)
+            if s in offline_ns
+        ]
+        matched = len(diffs)
+        live_lines = [
+            f'{live.measurement_points} measurement points and {len(live.stamps_ns)} fixes '
+            f'recorded from DDS in {live.wall_s:.1f} s (offline: {len(tri.fixes)} fixes)',
+            f'{matched} live fixes share an epoch with an offline fix; largest position '
+            f'difference {max(diffs) if diffs else float("nan"):.2e} m',
+            f'node logs: {live.log_dir}',
+        ]
+        for line in live_lines:
+            print('   ' + line)
+    print(f'[{steps}/{steps}] report -> {out / "report"}')
+    result = simulate(sc)
+    path = build_report(
+        ReportInputs(result, tri.fixes, summary, live_lines), out / 'report', World(sc)
+    )
+    print(f'done in {time.monotonic() - t_all:.1f} s; open {path}')
+    return 0
+
+
+def _cmd_report(args: argparse.Namespace) -> int:
+    from orbit_tracking.core.scenario import load_scenario
+    from orbit_tracking.core.simulation import World, simulate
+    from orbit_tracking.report import ReportInputs, build_report
+    from orbit_tracking.ros.bag import bag_custom_data
+
+    run = Path(args.run)
+    data = bag_custom_data(run / 'bag')
+    name = data.get('orbit_tracking.scenario')
+    if not name:
+        raise FileNotFoundError(f'{run / "bag"} does not say which scenario it holds')
+    sc = load_scenario(name)
+    fixes = _fixes_from_csv(run / 'triangulation', float(data['orbit_tracking.epoch']))
+    summary = (run / 'triangulation' / 'summary.yaml').read_text().splitlines()
+    path = build_report(ReportInputs(simulate(sc), fixes, summary), run / 'report', World(sc))
+    print(f'wrote {path}')
+    return 0
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    import platform
+
+    from orbit_tracking.bench import (
+        TRIANGULATION_SCENARIOS,
+        bench_triangulation,
+        markdown_table,
+        write_docs,
+    )
+
+    t0 = time.monotonic()
+    rows = bench_triangulation(
+        args.scenarios or TRIANGULATION_SCENARIOS, args.seeds, not args.quiet
+    )
+    text = markdown_table(rows, args.seeds)
+    text += (
+        f'\n\nMeasured by `orbit-tracking bench --seeds {args.seeds}` on {platform.machine()} '
+        f'({platform.python_implementation()} {platform.python_version()}) in '
+        f'{time.monotonic() - t0:.0f} s.'
+    )
+    print(text)
+    if args.write_docs:
+        write_docs(args.docs, 'triangulation', text)
+        print(f'updated {args.docs}')
     return 0
 
 
@@ -184,6 +336,32 @@ def build_parser() -> argparse.ArgumentParser:
     )
     s.add_argument('--quiet', action='store_true', help='no progress bar')
     s.set_defaults(func=_cmd_triangulate)
+
+    s = sub.add_parser('demo', help='the main job: simulate, triangulate, live DDS pass, report')
+    s.add_argument('--scenario', default='seed000_s1', help='scenario name or YAML path')
+    s.add_argument('--out', default=None, help='run folder (default runs/<scenario>)')
+    s.add_argument('--force', action='store_true', help='replace an existing run folder')
+    s.add_argument(
+        '--live',
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help='also stream the scenario through the nodes over DDS (default on)',
+    )
+    s.add_argument('--rate-factor', type=float, default=20.0, help='speed of the live pass')
+    s.add_argument('--quiet', action='store_true', help='no progress bars')
+    s.set_defaults(func=_cmd_demo)
+
+    s = sub.add_parser('bench', help='accuracy against truth and the CRB, and wall time')
+    s.add_argument('--scenarios', nargs='*', help='scenario names (default: the reference set)')
+    s.add_argument('--seeds', type=int, default=3, help='noise seeds per scenario')
+    s.add_argument('--write-docs', action='store_true', help='update docs/BENCHMARKS.md')
+    s.add_argument('--docs', default='docs/BENCHMARKS.md', help='file updated by --write-docs')
+    s.add_argument('--quiet', action='store_true', help='no progress lines')
+    s.set_defaults(func=_cmd_bench)
+
+    s = sub.add_parser('report', help='redraw the report of a demo run folder')
+    s.add_argument('run', help='run folder written by demo')
+    s.set_defaults(func=_cmd_report)
     return p
 
 

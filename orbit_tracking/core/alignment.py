@@ -21,6 +21,7 @@ arrive) and by the offline ``orbit-tracking triangulate`` (``flush``).
 from __future__ import annotations
 
 import math
+from bisect import bisect_left
 from collections import Counter, defaultdict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -135,7 +136,7 @@ class PoseTrack:
             return
         i = len(self.t)
         if self.t and t <= self.t[-1]:
-            i = int(np.searchsorted(self.t, t))
+            i = bisect_left(self.t, t)
             if i < len(self.t) and self.t[i] == t:
                 return
         self.t.insert(i, t)
@@ -152,7 +153,7 @@ class PoseTrack:
             return None
         if not self.moving:
             return self.p[0], self.r[0]
-        i = int(np.searchsorted(self.t, t))
+        i = bisect_left(self.t, t)
         if i < len(self.t) and abs(self.t[i] - t) < 1e-9:
             return self.p[i], self.r[i]
         if i > 0 and abs(self.t[i - 1] - t) < 1e-9:
@@ -174,7 +175,7 @@ class PoseTrack:
     def prune(self, before: float) -> None:
         if not self.moving or len(self.t) < 3:
             return
-        k = max(0, int(np.searchsorted(self.t, before)) - 1)
+        k = max(0, bisect_left(self.t, before) - 1)
         if k:
             del self.t[:k], self.p[:k], self.v[:k], self.r[:k]
 
@@ -196,7 +197,7 @@ class _Series:
         if self.t and t <= self.t[-1]:
             if t == self.t[-1]:
                 return
-            i = int(np.searchsorted(self.t, t))
+            i = bisect_left(self.t, t)
             for lst, v in zip(
                 (self.t, self.a, self.b, self.r, self.sa, self.sb, self.sr),
                 (t, a, b, r, sa, sb, sr),
@@ -224,7 +225,7 @@ class _Series:
         return value
 
     def prune(self, before: float) -> None:
-        k = max(0, int(np.searchsorted(self.t, before)) - 2)
+        k = max(0, bisect_left(self.t, before) - 2)
         if k:
             for lst in (self.t, self.a, self.b, self.r, self.sa, self.sb, self.sr):
                 del lst[:k]
@@ -402,7 +403,7 @@ class Aligner:
         if not s.t or t < s.t[0] - 1e-9 or t > s.t[-1] + 1e-9:
             return None, ''
         max_gap = self._max_gap(s)
-        i = int(np.searchsorted(s.t, t))
+        i = bisect_left(s.t, t)
         if i < len(s.t) and abs(s.t[i] - t) < 1e-9:
             line = self._sample_line(sid, s, i, max_gap)
             return (line, '') if line is not None else (None, 'no_station_state')
