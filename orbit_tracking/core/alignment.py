@@ -54,12 +54,15 @@ class AlignConfig:
         Live use: an epoch is processed once data up to ``epoch + lag`` have arrived [s].
     smoothing_eps : float or None
         Seed 003's low-pass weight ε (e.g. 0.95); None disables it.
+    stale_after : float
+        Live use: a stream silent for this long (data time, s) no longer holds epochs back.
     """
 
     period: float = 0.0
     max_gap_factor: float = 2.5
     lag: float = 1.0
     smoothing_eps: float | None = None
+    stale_after: float = 5.0
 
     def __post_init__(self) -> None:
         if self.period < 0.0:
@@ -68,6 +71,8 @@ class AlignConfig:
             raise ValueError(f'max_gap_factor must be >= 1; got {self.max_gap_factor}')
         if self.lag < 0.0:
             raise ValueError(f'lag must be >= 0; got {self.lag}')
+        if self.stale_after <= 0.0:
+            raise ValueError(f'stale_after must be > 0; got {self.stale_after}')
         if self.smoothing_eps is not None and not 0.0 < self.smoothing_eps <= 1.0:
             raise ValueError(f'smoothing_eps must be in (0, 1]; got {self.smoothing_eps}')
 
@@ -326,15 +331,45 @@ class Aligner:
         dts = [s.median_dt() for s in self.series.values()]
         return min(dts) if dts else math.inf
 
-    def process(self, until: float | None = None) -> list[EpochLines]:
-        """Lines at every new common epoch up to ``until`` (default: ``latest − lag``).
+    def stations_without_pose(self) -> list[str]:
+        """Angle stations that sent measurements but no state yet."""
+        with_data = {sid for sid, _ in self.series}
+        return sorted(s for s in with_data if not len(self.poses.get(s, ())))
 
-        Call with ``until=math.inf`` (or :meth:`flush`) at the end of the data.
+    def horizon(self) -> float:
+        """Data time up to which every live stream has delivered.
+
+        The minimum of the latest sample time of each measurement series and of each moving
+        station's pose track, ignoring streams that have been silent for more than
+        ``stale_after`` seconds of data time (a station in a dropout must not hold the
+        others back). Measurements and station states travel on different topics, so an
+        epoch is only fixed once the states that bracket it have arrived too.
+        """
+        ends = [s.t[-1] for s in self.series.values() if s.t]
+        ends += [
+            p.t[-1]
+            for sid, p in self.poses.items()
+            if p.moving and p.t and any(k[0] == sid for k in self.series)
+        ]
+        if not ends:
+            return -math.inf
+        newest = max(ends)
+        return min(e for e in ends if e >= newest - self.config.stale_after)
+
+    def process(self, until: float | None = None, wait_for_poses: bool = True) -> list[EpochLines]:
+        """Lines at every new common epoch up to ``until``.
+
+        By default up to :meth:`horizon` minus the lag, and nothing at all while a station
+        has measurements but no state yet (``wait_for_poses``; pass False once waiting for
+        it has timed out: its lines are then skipped and counted). Call with
+        ``until=math.inf`` (or :meth:`flush`) at the end of the data.
         """
         period = self.period()
         if not math.isfinite(period) or not self.series:
             return []
-        limit = self.latest - self.config.lag if until is None else min(until, self.latest)
+        if until is None and wait_for_poses and self.stations_without_pose():
+            return []
+        limit = self.horizon() - self.config.lag if until is None else min(until, self.latest)
         k_lo = math.ceil(self.earliest / period - 1e-9) if self.next_k is None else self.next_k
         k_hi = math.floor(limit / period + 1e-9)
         if k_hi - k_lo > 1_000_000:

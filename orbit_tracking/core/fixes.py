@@ -99,13 +99,13 @@ class TriangulationPipeline:
 
     def stations_without_pose(self) -> list[str]:
         """Angle stations that sent measurements but no state yet."""
-        with_data = {sid for sid, _ in self.aligner.series}
-        return sorted(s for s in with_data if not len(self.aligner.poses.get(s, ())))
+        return self.aligner.stations_without_pose()
 
-    def process(self, until: float | None = None) -> list[TimedFix]:
-        """Fixes of every epoch that is ready (all epochs with ``until=math.inf``)."""
+    def process(self, until: float | None = None, wait_for_poses: bool = True) -> list[TimedFix]:
+        """Fixes of every epoch that is ready (all epochs with ``until=math.inf``); see
+        :meth:`Aligner.process`."""
         out = []
-        for ep in self.aligner.process(until):
+        for ep in self.aligner.process(until, wait_for_poses):
             for why, n in ep.skipped.items():
                 self.counts[why] += n
             res = triangulate(ep.lines, self.gates)

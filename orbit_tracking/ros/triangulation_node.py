@@ -277,17 +277,18 @@ class TriangulationNode(Node):
         self.last_data = time.monotonic()
         self.flushed = False
         missing = self.pipeline.stations_without_pose()
+        waiting = False
         if missing:
             now = time.monotonic()
             self.first_pending = self.first_pending or now
-            if now - self.first_pending < self.state_wait:
-                return
-            self.get_logger().warning(
-                f'no state from station(s) {missing} after {self.state_wait:.0f} s; '
-                'fixing without them',
-                throttle_duration_sec=30.0,
-            )
-        fixes = self.pipeline.process()
+            waiting = now - self.first_pending < self.state_wait
+            if not waiting:
+                self.get_logger().warning(
+                    f'no state from station(s) {missing} after {self.state_wait:.0f} s; '
+                    'fixing without them',
+                    throttle_duration_sec=30.0,
+                )
+        fixes = self.pipeline.process(wait_for_poses=waiting)
         self._publish(fixes, tb)
         if fixes:
             self.proc_ms.append(1e3 * (time.monotonic() - t_start))
