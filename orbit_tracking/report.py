@@ -85,23 +85,46 @@ def plot_geometry(result: SimulationResult, world: World, path: Path) -> Path:
         ax.set_title('ground track and stations')
         axes[1].set_ylabel('height above WGS-84 [km]')
     else:
-        ax = axes[0]
+        axes[0].remove()
+        ax3 = fig.add_subplot(1, 2, 1, projection='3d')
+        u, v = np.mgrid[0 : 2 * np.pi : 24j, 0 : np.pi : 12j]
+        r = frames.WGS84_A / 1e3
+        ax3.plot_wireframe(
+            r * np.cos(u) * np.sin(v),
+            r * np.sin(u) * np.sin(v),
+            r * np.cos(v),
+            color='0.8',
+            lw=0.4,
+        )
+        mid = np.array([t[0], t[t.size // 2], t[-1]])
         for tid, traj in world.targets.items():
             x = traj.state(t)
-            ax.plot(x[:, 0] / 1e3, x[:, 2] / 1e3, lw=2, label=f'target {tid}')
+            ax3.plot(x[:, 0] / 1e3, x[:, 1] / 1e3, x[:, 2] / 1e3, lw=2.5, label=f'target {tid}')
             axes[1].plot(t, np.linalg.norm(x[:, 3:], axis=1), label=f'target {tid} speed')
         for sid, st in result.station_states.items():
-            ax.plot(st.position[:, 0] / 1e3, st.position[:, 2] / 1e3, '--', label=sid)
-        circle = plt.Circle((0, 0), frames.WGS84_A / 1e3, color='0.85', zorder=0)
-        ax.add_patch(circle)
-        ax.set_aspect('equal')
-        ax.set_xlabel('x [km]')
-        ax.set_ylabel('z [km]')
-        ax.set_title('targets and observing satellites (x-z plane)')
+            p = st.position / 1e3
+            line = ax3.plot(p[:, 0], p[:, 1], p[:, 2], '--', label=sid)[0]
+            # a few lines of sight, satellite to target, in the satellite's colour
+            for tm in mid:
+                i = min(int(np.searchsorted(st.time, tm)), len(st) - 1)
+                for traj in world.targets.values():
+                    q = traj.state(st.time[i])[0, :3] / 1e3
+                    seg = np.column_stack([p[i], q])
+                    ax3.plot(seg[0], seg[1], seg[2], color=line.get_color(), lw=0.6, alpha=0.6)
+        lim = max(float(np.abs(st.position).max()) for st in result.station_states.values()) / 1e3
+        for setter in (ax3.set_xlim, ax3.set_ylim, ax3.set_zlim):
+            setter(-lim, lim)
+        ax3.set_box_aspect((1, 1, 1))
+        ax3.set_xlabel('x [km]')
+        ax3.set_ylabel('y [km]')
+        ax3.set_zlabel('z [km]')
+        ax3.set_title('targets, observing satellites and lines of sight (eci)')
+        ax3.legend(fontsize=7)
+        axes = np.array([ax3, axes[1]])
         axes[1].set_ylabel('speed [m/s]')
     axes[1].set_xlabel('scenario time [s]')
     _gap_shading(axes[1], sc.gaps)
-    for a in axes:
+    for a in axes if sc.world_frame == 'earth' else axes[1:]:
         a.grid(alpha=0.3)
         a.legend(fontsize=7)
     fig.suptitle(f'{sc.name}: geometry')
@@ -171,11 +194,14 @@ def plot_fixes(
         t = np.array([f.time for f in tf])
         err = np.array([f.fix.position for f in tf]) - world.targets[tid].state(t)[:, :3]
         cov = np.array([f.fix.covariance for f in tf])
+        # break the envelope where fixes stop (a gap), instead of bridging it
+        breaks = np.flatnonzero(np.diff(t) > 5.0 * np.median(np.diff(t))) + 1 if t.size > 2 else []
+        t_env = np.insert(t, breaks, np.nan)
         for k, name in enumerate('xyz'):
-            sig = np.sqrt(cov[:, k, k])
+            sig = np.insert(np.sqrt(cov[:, k, k]), breaks, np.nan)
             axes[k].plot(t, err[:, k], '.', ms=2, label=f'target {tid} error')
             axes[k].fill_between(
-                t, -3 * sig, 3 * sig, alpha=0.2, label='±3σ' if tid == targets[0] else None
+                t_env, -3 * sig, 3 * sig, alpha=0.2, label='±3σ' if tid == targets[0] else None
             )
             axes[k].set_ylabel(f'{name} error [m]')
         axes[3].semilogy(t, nees(err, cov), '.', ms=2, label=f'target {tid} NEES')

@@ -301,3 +301,48 @@ def test_bad_parameter_is_one_fatal_line_and_exit_status_2(
     lines = [ln for ln in stderr.splitlines() if ln.strip()]
     assert len(lines) == 1, stderr
     assert '[FATAL]' in lines[0] and 'cannot start' in lines[0] and needle in lines[0], lines[0]
+
+
+def test_simulator_drives_clock_with_the_scenario_stamps(
+    rclpy_node, start_process, node_command, spin_until, ros_namespace
+):
+    from rosgraph_msgs.msg import Clock
+
+    ns = ros_namespace
+    clocks: list[int] = []
+    best_effort = QoSProfile(
+        history=HistoryPolicy.KEEP_LAST, depth=10, reliability=ReliabilityPolicy.BEST_EFFORT
+    )
+    rclpy_node.create_subscription(
+        Clock, '/clock', lambda m: clocks.append(_stamp_ns(m.clock)), best_effort
+    )
+    # the node waits for a reader on its measurement and (moving) state topics
+    rclpy_node.create_subscription(
+        PointCloud2, f'{ns}/stations/sat06/measurements', lambda _m: None, KEEP_ALL_VOLATILE
+    )
+    rclpy_node.create_subscription(
+        Odometry, f'{ns}/stations/sat06/state', lambda _m: None, KEEP_ALL_VOLATILE
+    )
+    proc = start_process(
+        node_command(
+            'station_sim',
+            namespace=ns,
+            scenario='seed003_q2',
+            station_id='sat06',
+            rate_factor=40.0,
+            publish_clock=True,
+            wait_for_subscribers=1,
+            shutdown_when_done=True,
+        )
+    )
+    end_ns = 1_700_000_170 * 1_000_000_000
+    spin_until(
+        rclpy_node,
+        lambda: bool(clocks) and clocks[-1] >= end_ns,
+        30.0,
+        lambda: f'/clock to reach the end of the pass; last {clocks[-1:]}',
+    )
+    assert proc.wait(timeout=15) == 0
+    assert len(clocks) > 50
+    assert np.all(np.diff(clocks) >= 0), '/clock went backwards'
+    assert clocks[0] >= 1_700_000_050 * 1_000_000_000 and clocks[-1] == end_ns

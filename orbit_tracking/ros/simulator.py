@@ -240,7 +240,9 @@ class SimulatorNode(Node):
         for ev in self.stream.until(min(t_now, sc.t_end)):
             self._publish(ev)
         if self.clock_pub is not None:
-            self.clock_pub.publish(Clock(clock=self.timebase.to_stamp(min(t_now, sc.t_end))))
+            # once every event is out the pass is over: the clock shows its end
+            t_clock = sc.t_end if self.stream.done else min(t_now, sc.t_end)
+            self.clock_pub.publish(Clock(clock=self.timebase.to_stamp(t_clock)))
         if now - self._last_diag >= 1.0 or self.stream.done:
             self._last_diag = now
             self._publish_diagnostics(min(t_now, sc.t_end))
