@@ -180,12 +180,16 @@ def markdown_table(rows: Sequence[TriangulationRow], seeds: int) -> str:
         'efficiency | mean NEES | time [ms/epoch] |',
         '|---|---|---|---|---|---|---|---|---|',
     ]
+
+    def num(x: float, fmt: str) -> str:
+        return format(x, fmt) if math.isfinite(x) else '—'
+
     for r in rows:
         nees_txt = f'{r.nees:.2f}' if math.isfinite(r.nees) else 'n/a'
         lines.append(
-            f'| {r.scenario} | {r.method} | {r.fixes}/{r.epochs} | {r.rms_m:.3f} | '
-            f'{r.median_m:.3f} | '
-            f'{r.crb_m:.3f} | {r.efficiency:.3f} | {nees_txt} | {r.wall_ms_per_fix:.2f} |'
+            f'| {r.scenario} | {r.method} | {r.fixes}/{r.epochs} | {num(r.rms_m, ".3f")} | '
+            f'{num(r.median_m, ".3f")} | {num(r.crb_m, ".3f")} | {num(r.efficiency, ".3f")} | '
+            f'{nees_txt} | {r.wall_ms_per_fix:.2f} |'
         )
     return '\n'.join(lines)
 

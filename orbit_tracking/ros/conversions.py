@@ -73,6 +73,12 @@ class TimeBase:
     def from_seconds(cls, epoch_s: float) -> TimeBase:
         return cls(int(round(epoch_s * 1e9)))
 
+    @classmethod
+    def whole_second_of(cls, stamp_ns_: int) -> TimeBase:
+        """A time base at the whole second of a stamp (what nodes use when no reference
+        is configured: the first stamp they receive)."""
+        return cls((stamp_ns_ // 1_000_000_000) * 1_000_000_000)
+
     def to_seconds(self, stamp: Time) -> float:
         return ((int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)) - self.ref_ns) * 1e-9
 

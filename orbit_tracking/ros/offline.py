@@ -55,7 +55,7 @@ class BagContext:
 
     def tb(self, ns: int) -> TimeBase:
         if self.timebase is None:
-            self.timebase = TimeBase((ns // 1_000_000_000) * 1_000_000_000)
+            self.timebase = TimeBase.whole_second_of(ns)
         return self.timebase
 
     def in_gap(self, t: np.ndarray) -> np.ndarray:

@@ -235,7 +235,7 @@ class TriangulationNode(Node):
 
     def _timebase(self, stamp_ns_: int) -> TimeBase:
         if self.timebase is None:
-            self.timebase = TimeBase((stamp_ns_ // 1_000_000_000) * 1_000_000_000)
+            self.timebase = TimeBase.whole_second_of(stamp_ns_)
         return self.timebase
 
     # -- callbacks -----------------------------------------------------------------
