@@ -5,6 +5,7 @@ Subcommands::
     orbit-tracking scenarios                          list the scenario files
     orbit-tracking simulate --scenario NAME --out DIR write a scenario to a rosbag2
     orbit-tracking record --out DIR                   record the contract topics from DDS
+    orbit-tracking play BAG [--rate R]                publish a bag's messages over DDS
     orbit-tracking triangulate BAG --out DIR          fixes.csv from a bag's lines of sight
     orbit-tracking demo [--scenario NAME] [--out DIR] the main job: simulate, triangulate,
                                                       a live pass over DDS, report with plots
@@ -88,6 +89,35 @@ def _cmd_record(args: argparse.Namespace) -> int:
     print(f'recorded {total} messages on {len(node.counts)} topics to {args.out}')
     for topic, n in sorted(node.counts.items()):
         print(f'  {topic}: {n}')
+    return 0
+
+
+def _cmd_play(args: argparse.Namespace) -> int:
+    import rclpy
+
+    from orbit_tracking.ros.player import BagPlayerNode
+
+    rclpy.init()
+    node = None
+    try:
+        node = BagPlayerNode(
+            args.bag, args.rate, args.topics, args.wait_for_subscribers, args.wait_timeout
+        )
+        rclpy.spin_until_future_complete(node, node.done)
+        end = time.monotonic() + args.linger  # let reliable readers catch up before leaving
+        while time.monotonic() < end:
+            rclpy.spin_once(node, timeout_sec=0.05)
+        print(f'played {node.count} messages from {args.bag}')
+    except KeyboardInterrupt:
+        pass
+    except ValueError as exc:
+        print(f'orbit-tracking play: error: {exc}', file=sys.stderr)
+        return 2
+    finally:
+        if node is not None:
+            node.close()
+            node.destroy_node()
+        rclpy.try_shutdown()
     return 0
 
 
@@ -294,6 +324,22 @@ def build_parser() -> argparse.ArgumentParser:
     )
     s.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap')
     s.set_defaults(func=_cmd_record)
+
+    s = sub.add_parser('play', help='publish the messages of a bag over DDS (ros2 bag play)')
+    s.add_argument('bag', help='rosbag2 folder')
+    s.add_argument('--rate', type=float, default=1.0, help='playback speed factor')
+    s.add_argument('--topics', nargs='*', help='topic glob patterns to play (default all)')
+    s.add_argument(
+        '--wait-for-subscribers',
+        type=int,
+        default=0,
+        help='wait until every non-latched topic has this many subscribers before playing',
+    )
+    s.add_argument('--wait-timeout', type=float, default=30.0, help='longest such wait [s]')
+    s.add_argument(
+        '--linger', type=float, default=1.0, help='seconds to stay after the last message'
+    )
+    s.set_defaults(func=_cmd_play)
 
     s = sub.add_parser('triangulate', help='intersect the lines of sight of a bag into fixes.csv')
     s.add_argument('bag', help='rosbag2 folder with stations/<id>/measurements and state')

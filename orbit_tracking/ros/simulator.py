@@ -62,8 +62,8 @@ class SimulatorNode(Node):
                 declare(
                     self,
                     'station_id',
-                    '',
-                    'Id of the scenario station to simulate.',
+                    'cw01',
+                    "Id of the scenario station to simulate (one of the scenario file's).",
                     read_only=True,
                 )
             ]
@@ -156,6 +156,10 @@ class SimulatorNode(Node):
 
         self.scenario: Scenario = load_scenario(name)
         sc = self.scenario
+        if single_station and not station_ids[0]:
+            raise ValueError(
+                f'station_id is empty; stations of {sc.name}: {[s.id for s in sc.stations]}'
+            )
         ids = [s for s in station_ids if s] or [s.id for s in sc.stations]
         known = {s.id for s in sc.stations}
         unknown = [s for s in ids if s not in known]
