@@ -28,6 +28,7 @@ import numpy as np
 
 from orbit_tracking.core.alignment import AlignConfig, Aligner, EpochLines
 from orbit_tracking.core.errors import GeometryError
+from orbit_tracking.core.fixes import feed_simulation
 from orbit_tracking.core.metrics import nees
 from orbit_tracking.core.scenario import Scenario, load_scenario
 from orbit_tracking.core.simulation import SimulationResult, World, simulate
@@ -67,11 +68,7 @@ class TriangulationRow:
 
 def _epochs(result: SimulationResult, config: AlignConfig) -> list[EpochLines]:
     al = Aligner(config)
-    for sid, st in result.station_states.items():
-        for i in range(len(st.time)):
-            al.add_pose(sid, st.time[i], st.position[i], st.velocity[i], st.rotation[i], st.moving)
-    for sid, m in result.measurements.items():
-        al.add_measurements(sid, m.fields, m.time, m.target_id, m.values, m.sigmas)
+    feed_simulation(al, result)
     return al.flush()
 
 

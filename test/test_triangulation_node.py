@@ -10,7 +10,12 @@ import numpy as np
 import pytest
 
 from orbit_tracking.cli import main as cli_main
-from orbit_tracking.core.fixes import FIXES_CSV_COLUMNS, TriangulationPipeline, read_fixes_csv
+from orbit_tracking.core.fixes import (
+    FIXES_CSV_COLUMNS,
+    TriangulationPipeline,
+    feed_simulation,
+    read_fixes_csv,
+)
 from orbit_tracking.core.scenario import load_scenario
 from orbit_tracking.core.simulation import simulate
 
@@ -19,15 +24,8 @@ EPOCH = 1_700_000_000
 
 def core_fixes(name: str):
     """Fixes of the core pipeline on the same simulated data as the nodes and the bags."""
-    res = simulate(load_scenario(name))
     pipe = TriangulationPipeline()
-    for sid, st in res.station_states.items():
-        for i in range(len(st.time)):
-            pipe.add_pose(
-                sid, st.time[i], st.position[i], st.velocity[i], st.rotation[i], st.moving
-            )
-    for sid, m in res.measurements.items():
-        pipe.add_measurements(sid, m.fields, m.time, m.target_id, m.values, m.sigmas)
+    feed_simulation(pipe, simulate(load_scenario(name)))
     return pipe.flush()
 
 

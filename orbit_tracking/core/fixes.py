@@ -7,7 +7,7 @@ from __future__ import annotations
 import csv
 import math
 from collections import Counter
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -15,12 +15,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from orbit_tracking.core.alignment import AlignConfig, Aligner
+from orbit_tracking.core.simulation import SimulationResult
 from orbit_tracking.core.triangulation import Fix, Gates, triangulate
 
 __all__ = [
     'FIXES_CSV_COLUMNS',
     'TimedFix',
     'TriangulationPipeline',
+    'feed_simulation',
     'format_stamp',
     'read_fixes_csv',
     'write_fixes_csv',
@@ -74,32 +76,10 @@ class TriangulationPipeline:
         self.aligner = Aligner(align)
         self.gates = gates or Gates()
         self.counts: Counter[str] = Counter()
-
-    def add_pose(
-        self,
-        station_id: str,
-        t: float,
-        position: FloatArray,
-        velocity: FloatArray,
-        rotation: FloatArray,
-        moving: bool,
-    ) -> None:
-        self.aligner.add_pose(station_id, t, position, velocity, rotation, moving)
-
-    def add_measurements(
-        self,
-        station_id: str,
-        fields: Sequence[str],
-        times: FloatArray,
-        target_ids: NDArray[np.uint32],
-        values: FloatArray,
-        sigmas: FloatArray,
-    ) -> int:
-        return self.aligner.add_measurements(station_id, fields, times, target_ids, values, sigmas)
-
-    def stations_without_pose(self) -> list[str]:
-        """Angle stations that sent measurements but no state yet."""
-        return self.aligner.stations_without_pose()
+        # input goes straight to the aligner
+        self.add_pose = self.aligner.add_pose
+        self.add_measurements = self.aligner.add_measurements
+        self.stations_without_pose = self.aligner.stations_without_pose
 
     def process(self, until: float | None = None, wait_for_poses: bool = True) -> list[TimedFix]:
         """Fixes of every epoch that is ready (all epochs with ``until=math.inf``); see
@@ -129,6 +109,18 @@ def format_stamp(ref_ns: int, t: float) -> str:
     sign = '-' if ns < 0 else ''
     ns = abs(ns)
     return f'{sign}{ns // 1_000_000_000}.{ns % 1_000_000_000:09d}'
+
+
+def feed_simulation(sink: Aligner | TriangulationPipeline, result: SimulationResult) -> None:
+    """Give every station state and measurement of a simulation to an aligner or pipeline
+    (what the nodes receive over DDS, all at once)."""
+    for sid, st in result.station_states.items():
+        for i in range(len(st)):
+            sink.add_pose(
+                sid, st.time[i], st.position[i], st.velocity[i], st.rotation[i], st.moving
+            )
+    for sid, m in result.measurements.items():
+        sink.add_measurements(sid, m.fields, m.time, m.target_id, m.values, m.sigmas)
 
 
 def write_fixes_csv(path: str | Path, fixes: Iterable[TimedFix], ref_ns: int = 0) -> int:
