@@ -372,3 +372,52 @@ def test_ship_sensors_in_the_rolling_deck_frame_give_consistent_fixes():
         summary = nees_summary(nees(err[sel], cov[sel])[::6])
         print(f'\nseed004_sea 0-400 s, {n_lines[sel][0]} line(s): {summary}')
         assert summary.consistent, summary
+
+
+def test_a_corrupt_far_future_stamp_is_rejected_and_does_not_stop_the_fixes():
+    sc = load_scenario('seed003_q2')
+    res = simulate(sc)
+    pipe = TriangulationPipeline(AlignConfig(lag=0.5))
+    st = {sid: res.station_states[sid] for sid in res.station_states}
+    fixes = []
+    # interleave: each station's samples and states epoch by epoch, with one corrupt stamp
+    events = sorted(
+        (m.time[i], sid, i) for sid, m in res.measurements.items() for i in range(len(m))
+    )
+    for n, (_t, sid, i) in enumerate(events):
+        s, m = st[sid], res.measurements[sid]
+        pipe.add_pose(sid, s.time[i], s.position[i], s.velocity[i], s.rotation[i], True)
+        tt = m.time[i : i + 1] + (3.15e7 if n == 300 else 0.0)  # one stamp a year ahead
+        pipe.add_measurements(
+            sid, m.fields, tt, m.target_id[i : i + 1], m.values[i : i + 1], m.sigmas[i : i + 1]
+        )
+        fixes += pipe.process()
+    fixes += pipe.flush()
+    assert pipe.counts['time_jump'] == 1
+    assert len(fixes) >= 596  # the one lost sample costs at most two epochs
+    assert max(f.time for f in fixes) < 171.0
+
+
+def test_a_new_pass_after_a_long_pause_restarts_the_buffers():
+    from orbit_tracking.core.alignment import Aligner
+
+    al = Aligner(AlignConfig(max_time_jump=100.0))
+    rot = np.eye(3)
+    for sid in ('a', 'b'):
+        al.add_pose(
+            sid, 0.0, np.array([1e6, 0, 0]) * (1 if sid == 'a' else -1), np.zeros(3), rot, False
+        )
+    vals = np.array([[0.1, 0.2]])
+    sig = np.array([[1e-5, 1e-5]])
+    for t in np.arange(0.0, 10.0, 0.1):
+        for sid in ('a', 'b'):
+            al.add_measurements(
+                sid, ('azimuth', 'elevation'), np.array([t]), np.zeros(1, np.uint32), vals, sig
+            )
+    for t in np.arange(5000.0, 5010.0, 0.1):
+        for sid in ('a', 'b'):
+            al.add_measurements(
+                sid, ('azimuth', 'elevation'), np.array([t]), np.zeros(1, np.uint32), vals, sig
+            )
+    assert al.counts['restarts'] == 1
+    assert al.earliest >= 5000.0

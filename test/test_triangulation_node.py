@@ -181,6 +181,7 @@ def test_triangulation_node_counts_bad_input_and_keeps_running(
     pubs['opt01'].publish(_cloud('opt01', fields, (1.0, 0.2), sig, 1.0, PointField.FLOAT32))
     pubs['opt01'].publish(_cloud('opt01', fields, (math.nan, 0.2), sig, 1.01))
     pubs['opt01'].publish(_cloud('opt01', fields, (1.0, 0.2), (0.0, 1e-5), 1.02))  # zero sigma
+    pubs['ghost'].publish(_cloud('opt02', fields, (1.0, 0.2), sig, 1.03))  # wrong frame_id
     for sid in ('opt01', 'opt02'):
         m = res.measurements[sid]
         for i in range(60):
@@ -188,7 +189,13 @@ def test_triangulation_node_counts_bad_input_and_keeps_running(
             pubs['ghost'].publish(
                 _cloud('ghost', fields, m.values[i], m.sigmas[i], float(m.time[i]))
             )
-    want = ('invalid_messages', 'nan_measurement', 'rejected_points', 'no_station_state')
+    want = (
+        'invalid_messages',
+        'nan_measurement',
+        'rejected_points',
+        'no_station_state',
+        'station_mismatch',
+    )
     spin_until(
         rclpy_node,
         lambda: (
@@ -203,6 +210,7 @@ def test_triangulation_node_counts_bad_input_and_keeps_running(
     assert int(last['invalid_messages']) == 1
     assert int(last['rejected_points']) == 1
     assert int(last['nan_measurement']) == 1
+    assert int(last['station_mismatch']) == 1
     time.sleep(0.5)
     assert tri.poll() is None, 'the node must keep running'
     assert 'Traceback' not in tri.errors()

@@ -56,6 +56,8 @@ class AlignConfig:
         Seed 003's low-pass weight ε (e.g. 0.95); None disables it.
     stale_after : float
         Live use: a stream silent for this long (data time, s) no longer holds epochs back.
+    max_time_jump : float
+        A sample this far [s] ahead of all data so far is taken for a corrupt stamp.
     """
 
     period: float = 0.0
@@ -63,6 +65,7 @@ class AlignConfig:
     lag: float = 1.0
     smoothing_eps: float | None = None
     stale_after: float = 5.0
+    max_time_jump: float = 600.0
 
     def __post_init__(self) -> None:
         if self.period < 0.0:
@@ -71,6 +74,8 @@ class AlignConfig:
             raise ValueError(f'max_gap_factor must be >= 1; got {self.max_gap_factor}')
         if self.lag < 0.0:
             raise ValueError(f'lag must be >= 0; got {self.lag}')
+        if self.max_time_jump <= 0.0:
+            raise ValueError(f'max_time_jump must be > 0; got {self.max_time_jump}')
         if self.stale_after <= 0.0:
             raise ValueError(f'stale_after must be > 0; got {self.stale_after}')
         if self.smoothing_eps is not None and not 0.0 < self.smoothing_eps <= 1.0:
@@ -262,6 +267,7 @@ class Aligner:
         self.earliest = math.inf
         self.next_k: int | None = None
         self.counts: Counter[str] = Counter()
+        self._jumps = 0
 
     # -- input ---------------------------------------------------------------------
     def add_pose(
@@ -273,7 +279,33 @@ class Aligner:
         rotation: FloatArray,
         moving: bool,
     ) -> None:
+        if moving and math.isfinite(self.latest) and t > self.latest + self.config.max_time_jump:
+            self.counts['time_jump'] += 1
+            return
         self.poses[station_id].add(t, position, velocity, rotation, moving)
+
+    def _plausible(self, t: float) -> bool:
+        """Guard against a corrupt stamp far ahead of the data so far: it is rejected
+        (``time_jump``), unless jumps persist (50 samples in a row: a new pass hours
+        later), in which case the buffers restart at the new time."""
+        if not math.isfinite(t):
+            self.counts['invalid_time'] += 1
+            return False
+        if math.isfinite(self.latest) and t > self.latest + self.config.max_time_jump:
+            self._jumps += 1
+            if self._jumps < 50:
+                self.counts['time_jump'] += 1
+                return False
+            self.counts['restarts'] += 1
+            self._restart()
+        self._jumps = 0
+        return True
+
+    def _restart(self) -> None:
+        self.series.clear()
+        for sid in [s for s, p in self.poses.items() if p.moving]:
+            del self.poses[sid]
+        self.latest, self.earliest, self.next_k, self._jumps = -math.inf, math.inf, None, 0
 
     def add_measurements(
         self,
@@ -302,13 +334,15 @@ class Aligner:
             if not (np.isfinite(a) and np.isfinite(b)):
                 self.counts['nan_measurement'] += 1
                 continue
+            t = float(times[j])
+            if not self._plausible(t):
+                continue
             r = values[j, ir] if ir is not None else math.nan
             sr = sigmas[j, ir] if ir is not None else math.nan
             key = (station_id, int(target_ids[j]))
             s = self.series.get(key)
             if s is None:
                 s = self.series[key] = _Series(kind)
-            t = float(times[j])
             s.add(
                 t,
                 float(a),

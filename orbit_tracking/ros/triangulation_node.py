@@ -221,14 +221,14 @@ class TriangulationNode(Node):
             profile = qos.matching_reader(self.get_publishers_info_by_topic(topic))
             if profile is not None:
                 self.state_subs[sid] = self.create_subscription(
-                    Odometry, topic, self._on_state, profile
+                    Odometry, topic, lambda m, s=sid: self._on_state(m, s), profile
                 )
 
     def _subscribe(self, sid: str) -> None:
         self.subs[sid] = self.create_subscription(
             PointCloud2,
             f'stations/{sid}/measurements',
-            self._on_measurements,
+            lambda m, s=sid: self._on_measurements(m, s),
             qos.MEASUREMENTS_SUB,
         )
         self.get_logger().info(f'subscribed to station {sid}')
@@ -239,12 +239,18 @@ class TriangulationNode(Node):
         return self.timebase
 
     # -- callbacks -----------------------------------------------------------------
-    def _on_state(self, msg: Odometry) -> None:
+    def _on_state(self, msg: Odometry, sid: str) -> None:
         tb = self._timebase(stamp_ns(msg.header.stamp))
         try:
             st = odometry_to_station_state(msg, tb)
         except ValueError as exc:
             self._reject('invalid_state', f'station state rejected: {exc}')
+            return
+        if st.station_id != sid:
+            self._reject(
+                'station_mismatch',
+                f'state on stations/{sid}/state names station {st.station_id!r}; ignored',
+            )
             return
         if self.world_frame and msg.header.frame_id != self.world_frame:
             self._reject(
@@ -258,7 +264,7 @@ class TriangulationNode(Node):
             st.station_id, st.time, st.position, st.velocity, st.rotation, st.moving
         )
 
-    def _on_measurements(self, msg: PointCloud2) -> None:
+    def _on_measurements(self, msg: PointCloud2, sid: str) -> None:
         t_start = time.monotonic()
         tb = self._timebase(stamp_ns(msg.header.stamp))
         try:
@@ -268,8 +274,12 @@ class TriangulationNode(Node):
             return
         if batch.rejected:
             self.counts['rejected_points'] += batch.rejected
-        if self.station_filter and batch.station_id not in self.station_filter:
-            self.counts['foreign_station'] += 1
+        if batch.station_id != sid:
+            self._reject(
+                'station_mismatch',
+                f'message on stations/{sid}/measurements has frame_id {batch.station_id!r}; '
+                'ignored',
+            )
             return
         self.pipeline.add_measurements(
             batch.station_id, batch.fields, batch.time, batch.target_id, batch.values, batch.sigmas
