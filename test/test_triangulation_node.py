@@ -29,10 +29,9 @@ def core_fixes(name: str):
     return pipe.flush()
 
 
-@pytest.mark.dds
-def test_scenario_sim_and_triangulation_processes_deliver_the_core_fixes(
-    start_process, node_command, rclpy_node, spin_until
-):
+def start_triangulation_and_listen(start_process, node_command, rclpy_node, spin_until):
+    """Start the triangulation node; return it and the list its fixes arrive in, once the
+    test's subscriber sees the node's publisher (no fix lost to discovery)."""
     from geometry_msgs.msg import PoseWithCovarianceStamped
 
     from orbit_tracking.ros import qos
@@ -48,6 +47,15 @@ def test_scenario_sim_and_triangulation_processes_deliver_the_core_fixes(
         20,
         'the triangulation node to appear',
     )
+    return tri, got
+
+
+@pytest.mark.dds
+def test_scenario_sim_and_triangulation_processes_deliver_the_core_fixes(
+    start_process, node_command, rclpy_node, spin_until
+):
+
+    tri, got = start_triangulation_and_listen(start_process, node_command, rclpy_node, spin_until)
     sim = start_process(
         node_command(
             'scenario_sim',
@@ -254,25 +262,11 @@ def test_replaying_a_bag_into_the_node_reproduces_the_offline_fixes(
     offline tool on the same bag."""
     import sys
 
-    from geometry_msgs.msg import PoseWithCovarianceStamped
-
-    from orbit_tracking.ros import qos
-
     bag = tmp_path / 'bag'
     assert cli_main(['simulate', '--scenario', 'seed003_q2', '--out', str(bag), '--quiet']) == 0
     assert cli_main(['triangulate', str(bag), '--out', str(tmp_path / 'tri'), '--quiet']) == 0
     offline = read_fixes_csv(tmp_path / 'tri' / 'fixes.csv')
-    start_process(node_command('triangulation_node', lag=0.5, flush_after=1.0))
-    got: list[PoseWithCovarianceStamped] = []
-    rclpy_node.create_subscription(
-        PoseWithCovarianceStamped, 'triangulation/fixes', got.append, qos.STATE_STREAM
-    )
-    spin_until(
-        rclpy_node,
-        lambda: rclpy_node.count_publishers('triangulation/fixes') > 0,
-        20,
-        'the triangulation node to appear',
-    )
+    _tri, got = start_triangulation_and_listen(start_process, node_command, rclpy_node, spin_until)
     player = start_process(
         [
             sys.executable,

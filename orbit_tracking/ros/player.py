@@ -19,6 +19,7 @@ from rclpy.task import Future
 from rosbags.rosbag2 import Reader
 
 from orbit_tracking.ros.bag import message_class
+from orbit_tracking.ros.runner import ready_to_stream
 
 __all__ = ['BagPlayerNode']
 
@@ -111,17 +112,13 @@ class BagPlayerNode(Node):
         self.timer = self.create_timer(0.005, self._tick)
 
     def _ready(self, now: float) -> bool:
-        if now - self._created < self.start_delay:
-            return False
-        if (
-            self.wait_for_subscribers <= 0
-            or now - self._created > self.start_delay + self.wait_timeout
-        ):
-            return True
-        return all(
-            p.get_subscription_count() >= self.wait_for_subscribers
-            for cid, p in self.pubs.items()
-            if cid not in self.latched
+        pubs = [p for cid, p in self.pubs.items() if cid not in self.latched]
+        return ready_to_stream(
+            now - self._created,
+            self.start_delay,
+            self.wait_for_subscribers,
+            self.wait_timeout,
+            pubs,
         )
 
     def _tick(self) -> None:

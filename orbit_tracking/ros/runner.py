@@ -3,16 +3,17 @@
 from __future__ import annotations
 
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 
 import rclpy
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.publisher import Publisher
 
 from orbit_tracking.core.errors import OrbitTrackingError
 
-__all__ = ['run_node']
+__all__ = ['ready_to_stream', 'run_node']
 
 
 def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> None:
@@ -53,3 +54,20 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> None
         rclpy.try_shutdown()
         if code:
             sys.exit(code)
+
+
+def ready_to_stream(
+    elapsed: float,
+    start_delay: float,
+    wait_for_subscribers: int,
+    wait_timeout: float,
+    publishers: Iterable[Publisher],
+) -> bool:
+    """Whether a streaming node (simulator, bag player) may start: ``start_delay`` wall
+    seconds have passed since it was created and every one of ``publishers`` has at least
+    ``wait_for_subscribers`` readers, or ``wait_timeout`` more seconds have passed."""
+    if elapsed < start_delay:
+        return False
+    if wait_for_subscribers <= 0 or elapsed >= start_delay + wait_timeout:
+        return True
+    return all(p.get_subscription_count() >= wait_for_subscribers for p in publishers)

@@ -32,6 +32,7 @@ from orbit_tracking.ros import qos
 from orbit_tracking.ros.conversions import TimeBase, diagnostic_array, diagnostic_status
 from orbit_tracking.ros.messages import event_message
 from orbit_tracking.ros.parameters import declare
+from orbit_tracking.ros.runner import ready_to_stream
 
 __all__ = ['SimulatorNode']
 
@@ -218,19 +219,19 @@ class SimulatorNode(Node):
 
     # -- streaming -----------------------------------------------------------------
     def _ready(self, now: float) -> bool:
-        if now - self._created < self.start_delay:
-            return False
-        if (
-            self.wait_for_subscribers > 0
-            and now - self._created < self.start_delay + self.wait_timeout
-        ):
-            pubs = list(self.meas_pubs.values()) + [
-                self.state_pubs[sid]
-                for sid in self.meas_pubs
-                if self.result.station_states[sid].moving
-            ]
-            return all(p.get_subscription_count() >= self.wait_for_subscribers for p in pubs)
-        return True
+        # readers of the measurements and of moving stations' (volatile) states
+        pubs = list(self.meas_pubs.values()) + [
+            self.state_pubs[sid]
+            for sid in self.meas_pubs
+            if self.result.station_states[sid].moving
+        ]
+        return ready_to_stream(
+            now - self._created,
+            self.start_delay,
+            self.wait_for_subscribers,
+            self.wait_timeout,
+            pubs,
+        )
 
     def _tick(self) -> None:
         now = time.monotonic()
