@@ -1,0 +1,799 @@
+"""Trajectory estimation on a window of raw measurements (seed 000).
+
+The unknowns are the spline coefficients of every target's trajectory
+(:mod:`~orbit_tracking.core.bspline`, knots from :mod:`~orbit_tracking.core.knots`) and,
+when on-board telemetry is fused, the coefficients of its slowly varying error. Every
+measurement is whitened by its sigma, ``Y = F(beta) + E, E ~ N(0, I)``, and
+
+    beta <- beta + omega (J^T J)^-1 J^T (Y - F(beta))            (seed 000, eq. 7)
+
+with ``omega = 1`` halved while the cost rises (Gauss-Newton with step halving). The
+Jacobian is sparse (a row touches ``degree + 1`` coefficients per axis); the normal
+matrix is small and solved by Cholesky. The coefficient covariance ``(J^T J)^-1`` is
+propagated to position and velocity at any time.
+
+Measurement rows:
+
+* stations: every field of the contract (range, range_rate, azimuth with wrap-around,
+  elevation, los_alpha, los_beta) through :func:`~orbit_tracking.core.measurements.predict`;
+* telemetry (beyond the paper): ``tel_p = p(t) + e(t) + w``, ``tel_v = v(t) + e'(t) + w'``
+  with ``e`` a cubic spline per axis with knots every ``telemetry_error_spacing`` s (an
+  offset and a drift that may bend slowly), a weak prior on ``e`` (the telemetry's
+  reported sigma) and white-noise levels re-estimated from the residuals;
+* fixes, optionally, as weak position measurements (their covariance divided by
+  ``fix_weight``); they come from the same measurements, so they are off by default.
+
+Outliers: after the warm-up solve, rows whose whitened residual exceeds ``gate_sigma``
+are rejected (counted per station and reason) and the solve repeated.
+"""
+
+from __future__ import annotations
+
+import math
+import time as _time
+from collections import Counter
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sp
+from numpy.typing import NDArray
+
+from orbit_tracking.core.bspline import SplineAxis, SplineTrajectory
+from orbit_tracking.core.coverage import CoverageConfig, find_incomplete_segments, merge_segments
+from orbit_tracking.core.errors import OrbitTrackingError
+from orbit_tracking.core.knots import (
+    KnotConfig,
+    KnotSelection,
+    RoughTrajectory,
+    choose_knots,
+    rough_trajectory,
+    uniform_knots,
+)
+from orbit_tracking.core.measurements import predict, residual
+from orbit_tracking.core.observations import Observations
+
+__all__ = [
+    'EstimationError',
+    'Estimate',
+    'EstimatorConfig',
+    'TargetSolution',
+    'estimate',
+    'state_covariance',
+]
+
+FloatArray = NDArray[np.float64]
+Segment = tuple[float, float]
+
+KNOT_METHODS = ('sparse', 'dense', 'uniform', 'dynamics', 'polynomial')
+
+
+class EstimationError(OrbitTrackingError, RuntimeError):
+    """A window cannot be estimated (no data, no rough trajectory, singular problem)."""
+
+
+@dataclass(frozen=True)
+class EstimatorConfig:
+    """Settings of one window's estimation.
+
+    Attributes
+    ----------
+    knots : KnotConfig
+    knot_method : str
+        ``sparse`` (the seed's method), or the baselines ``dynamics`` (b), ``uniform``
+        (c, dense uniform knots), ``dense`` (densified, no selection), ``polynomial``
+        (a, one polynomial of ``polynomial_degree`` per axis over the window).
+    baseline_spacing : float
+        Knot spacing [s] of the ``dynamics`` baseline.
+    polynomial_degree : int
+    max_iterations, tolerance, max_halvings :
+        Gauss-Newton stops when the relative cost change falls below ``tolerance`` or
+        after ``max_iterations``; a step is halved at most ``max_halvings`` times.
+    gate_sigma : float
+        Whitened-residual gate (0 disables it); ``gate_rounds`` re-solves at most.
+    use_telemetry : bool
+        Fuse telemetry as weighted measurements with its own error model.
+    telemetry_error_spacing : float
+        Knot spacing [s] of the telemetry error spline (cubic).
+    estimate_telemetry_noise : bool
+        Re-estimate the telemetry white-noise levels from the residuals.
+    fix_weight : float
+        Fixes as measurements with covariance / ``fix_weight``; 0 = not used.
+    segments : tuple of (start, end)
+        Declared incomplete segments [s] (added to the detected ones).
+    detect_segments : bool
+    coverage : CoverageConfig
+    """
+
+    knots: KnotConfig = field(default_factory=KnotConfig)
+    knot_method: str = 'sparse'
+    baseline_spacing: float = 3.0
+    polynomial_degree: int = 6
+    max_iterations: int = 20
+    tolerance: float = 1e-9
+    max_halvings: int = 12
+    gate_sigma: float = 5.0
+    gate_rounds: int = 3
+    use_telemetry: bool = True
+    telemetry_error_spacing: float = 15.0
+    estimate_telemetry_noise: bool = True
+    fix_weight: float = 0.0
+    segments: tuple[Segment, ...] = ()
+    detect_segments: bool = True
+    coverage: CoverageConfig = field(default_factory=CoverageConfig)
+
+    def __post_init__(self) -> None:
+        if self.knot_method not in KNOT_METHODS:
+            raise ValueError(
+                f'knot_method must be one of {KNOT_METHODS}; got {self.knot_method!r}'
+            )
+        if self.max_iterations < 1 or self.max_halvings < 0:
+            raise ValueError('max_iterations must be >= 1 and max_halvings >= 0')
+        if self.gate_sigma < 0.0 or self.fix_weight < 0.0:
+            raise ValueError('gate_sigma and fix_weight must be >= 0')
+        if self.telemetry_error_spacing <= 0.0:
+            raise ValueError('telemetry_error_spacing must be > 0')
+        for a, b in self.segments:
+            if not b > a:
+                raise ValueError(f'segment ({a}, {b}) must have end > start')
+
+
+@dataclass(frozen=True)
+class TargetSolution:
+    """The fitted trajectory of one target.
+
+    ``covariance`` is the marginal covariance of ``coef`` (all other parameters
+    estimated too); use :meth:`states` for position/velocity and their covariance.
+    """
+
+    target_id: int
+    trajectory: SplineTrajectory
+    coef: FloatArray
+    covariance: FloatArray
+    knots: KnotSelection
+    segments: tuple[Segment, ...]
+    telemetry_error: tuple[SplineAxis, FloatArray] | None = None
+    telemetry_noise: tuple[float, float] | None = None
+
+    @property
+    def t0(self) -> float:
+        return self.trajectory.t0
+
+    @property
+    def t1(self) -> float:
+        return self.trajectory.t1
+
+    def states(self, t: Sequence[float] | FloatArray) -> tuple[FloatArray, FloatArray]:
+        """World-frame (position, velocity) (m, 6) and their covariance (m, 6, 6)."""
+        tt = np.asarray(t, dtype=np.float64)
+        return self.trajectory.states(self.coef, tt), state_covariance(
+            self.trajectory, self.covariance, tt
+        )
+
+    def parameters_in(self, a: float, b: float) -> int:
+        """Coefficients whose support overlaps (a, b) (the seed's 'parameters in the gap')."""
+        n = 0
+        for ax in self.trajectory.axes:
+            k, p = ax.knots, ax.degree
+            lo, hi = k[: ax.n_coef], k[p + 1 : p + 1 + ax.n_coef]
+            n += int(np.sum((hi > a) & (lo < b)))
+        return n
+
+
+def state_covariance(traj: SplineTrajectory, cov: FloatArray, t: FloatArray) -> FloatArray:
+    """Covariance (m, 6, 6) of world position and velocity from the coefficient
+    covariance ``cov`` (n_coef, n_coef)."""
+    m = t.shape[0]
+    g = sp.vstack([traj.world_design(t, 0), traj.world_design(t, 1)]).tocsr()
+    gp = np.asarray(g @ cov)  # (6m, n)
+    gd = g.toarray() if g.shape[0] * g.shape[1] < 5e7 else None
+    if gd is None:
+        raise EstimationError('too many output times for one covariance evaluation')
+    rows = np.concatenate([np.arange(m) * 3 + c for c in range(3)] + [])
+    del rows
+    # index of (time j, component c) in g: position rows 3j + c, velocity rows 3m + 3j + c
+    idx = np.empty((m, 6), dtype=int)
+    for c in range(3):
+        idx[:, c] = 3 * np.arange(m) + c
+        idx[:, 3 + c] = 3 * m + 3 * np.arange(m) + c
+    a = gp[idx]  # (m, 6, n)
+    b = gd[idx]  # (m, 6, n)
+    out = np.einsum('min,mjn->mij', a, b)
+    return 0.5 * (out + np.transpose(out, (0, 2, 1)))
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """Outcome of one window, the way ``scipy.optimize`` reports.
+
+    Attributes
+    ----------
+    success : bool
+    message : str
+    t0, t1 : float
+        Window span [s].
+    targets : mapping of target id to TargetSolution
+    iterations, halvings : int
+    cost : float
+        Final ``|r|^2`` (whitened).
+    chi2_dof : float
+        ``cost / (rows - parameters)``.
+    condition : float
+        Condition number of the Jacobi-scaled normal matrix.
+    n_parameters : int
+    used, rejected : Counter
+        Rows used per station id; rejected rows per ``(station id, reason)``.
+    residuals : mapping of station id to (time (n,), field names, whitened residual (n, k))
+    knot_time, solve_time : float
+        Wall time [s] of knot selection and of the Gauss-Newton solve.
+    """
+
+    success: bool
+    message: str
+    t0: float
+    t1: float
+    targets: Mapping[int, TargetSolution]
+    iterations: int
+    halvings: int
+    cost: float
+    chi2_dof: float
+    condition: float
+    n_parameters: int
+    used: Counter[str]
+    rejected: Counter[tuple[str, str]]
+    residuals: Mapping[str, tuple[FloatArray, tuple[str, ...], FloatArray]]
+    knot_time: float
+    solve_time: float
+    covariance: FloatArray = field(repr=False, default_factory=lambda: np.zeros((0, 0)))
+
+
+# ---------------------------------------------------------------------------------------
+# problem assembly
+
+
+@dataclass
+class _StationBlock:
+    station: str
+    target: int
+    fields: tuple[str, ...]
+    time: FloatArray
+    values: FloatArray
+    sigmas: FloatArray
+    pose: object
+    pw: sp.csr_matrix  # (3m, n_t) world position design
+    vw: sp.csr_matrix
+    valid: NDArray[np.bool_]  # (m, k)
+
+
+@dataclass
+class _TelemetryBlock:
+    target: int
+    time: FloatArray
+    position: FloatArray
+    velocity: FloatArray
+    pw: sp.csr_matrix
+    vw: sp.csr_matrix
+    ew: sp.csr_matrix  # (3m, 3 n_e) error design (position)
+    edw: sp.csr_matrix
+    axis: SplineAxis
+    offset: int  # first error coefficient
+    prior_sigma: tuple[float, float]
+    noise: list[float]  # [position, velocity] white sigma
+    valid_p: NDArray[np.bool_]
+    valid_v: NDArray[np.bool_]
+
+
+@dataclass
+class _FixBlock:
+    target: int
+    time: FloatArray
+    position: FloatArray
+    whiten: FloatArray  # (m, 3, 3), W^T W = weight * inv(cov)
+    pw: sp.csr_matrix
+    valid: NDArray[np.bool_]
+
+
+def _row_contract(h: FloatArray, design: sp.csr_matrix) -> sp.csr_matrix:
+    """Rows ``sum_c h[i, j, c] design[3 i + c]`` for every (i, j): (m k, n)."""
+    m, k, _ = h.shape
+    indptr = np.arange(m * k + 1) * 3
+    indices = (3 * np.arange(m)[:, None, None] + np.arange(3)[None, None, :]).repeat(k, axis=1)
+    s = sp.csr_matrix((h.ravel(), indices.ravel(), indptr), shape=(m * k, 3 * m))
+    return (s @ design).tocsr()
+
+
+def _shift(mat: sp.spmatrix, offset: int, n: int) -> sp.csr_matrix:
+    coo = mat.tocoo()
+    return sp.csr_matrix((coo.data, (coo.row, coo.col + offset)), shape=(coo.shape[0], n))
+
+
+class _Problem:
+    def __init__(
+        self,
+        obs: Observations,
+        solutions: dict[int, tuple[SplineTrajectory, FloatArray]],
+        cfg: EstimatorConfig,
+        t0: float,
+        t1: float,
+    ) -> None:
+        self.cfg = cfg
+        self.offsets: dict[int, int] = {}
+        n = 0
+        for tid, (traj, _) in solutions.items():
+            self.offsets[tid] = n
+            n += traj.n_coef
+        self.trajs = {tid: s[0] for tid, s in solutions.items()}
+        self.origin = {tid: tr.origin for tid, tr in self.trajs.items()}
+        self.stations: list[_StationBlock] = []
+        for s in obs.stations:
+            tab = s.table
+            for tid in self.trajs:
+                sel = tab.target_id == tid
+                if not np.any(sel):
+                    continue
+                idx = np.flatnonzero(sel)
+                t = tab.time[idx]
+                traj = self.trajs[tid]
+                valid = np.isfinite(tab.values[idx]) & (tab.sigmas[idx] > 0)
+                self.stations.append(
+                    _StationBlock(
+                        tab.station_id,
+                        tid,
+                        tab.fields,
+                        t,
+                        tab.values[idx],
+                        tab.sigmas[idx],
+                        s.pose.take(idx),
+                        traj.world_design(t, 0),
+                        traj.world_design(t, 1),
+                        valid,
+                    )
+                )
+        self.telemetry: list[_TelemetryBlock] = []
+        if cfg.use_telemetry:
+            for tid, tel in obs.telemetry.items():
+                if tid not in self.trajs or len(tel) < 4:
+                    continue
+                traj = self.trajs[tid]
+                knots = uniform_knots(t0, t1, cfg.telemetry_error_spacing, degree=3)
+                axis = SplineAxis.from_interior(knots, t0, t1, 3)
+                e0, e1 = axis.design(tel.time, 0), axis.design(tel.time, 1)
+                i3 = sp.identity(3, format='csr')
+                self.telemetry.append(
+                    _TelemetryBlock(
+                        tid,
+                        tel.time,
+                        tel.position,
+                        tel.velocity,
+                        traj.world_design(tel.time, 0),
+                        traj.world_design(tel.time, 1),
+                        sp.kron(e0, i3, format='csr'),
+                        sp.kron(e1, i3, format='csr'),
+                        axis,
+                        n,
+                        (
+                            float(np.median(tel.position_sigma)),
+                            float(np.median(tel.velocity_sigma)),
+                        ),
+                        [
+                            float(np.median(tel.position_sigma)),
+                            float(np.median(tel.velocity_sigma)),
+                        ],
+                        np.isfinite(tel.position).all(axis=1),
+                        np.isfinite(tel.velocity).all(axis=1),
+                    )
+                )
+                n += 3 * axis.n_coef
+        self.fixes: list[_FixBlock] = []
+        if cfg.fix_weight > 0.0:
+            for tid, fx in obs.fixes.items():
+                if tid not in self.trajs or not len(fx):
+                    continue
+                inv = np.linalg.inv(fx.covariance) * cfg.fix_weight
+                w = np.transpose(np.linalg.cholesky(inv), (0, 2, 1))
+                self.fixes.append(
+                    _FixBlock(
+                        tid,
+                        fx.time,
+                        fx.position,
+                        w,
+                        self.trajs[tid].world_design(fx.time, 0),
+                        np.isfinite(fx.position).all(axis=1),
+                    )
+                )
+        self.n = n
+        self.gated: dict[int, NDArray[np.bool_]] = {}
+
+    # -- evaluation ------------------------------------------------------------------
+
+    def _coef(self, beta: FloatArray, tid: int) -> FloatArray:
+        o = self.offsets[tid]
+        return beta[o : o + self.trajs[tid].n_coef]
+
+    def evaluate(
+        self, beta: FloatArray, jacobian: bool
+    ) -> tuple[FloatArray, sp.csr_matrix | None, list[tuple[str, int, NDArray[np.bool_]]]]:
+        """Whitened residuals (and Jacobian of the model, ``d F / d beta``)."""
+        res: list[FloatArray] = []
+        jac: list[sp.csr_matrix] = []
+        tags: list[tuple[str, int, NDArray[np.bool_]]] = []
+        for bi, b in enumerate(self.stations):
+            coef = self._coef(beta, b.target)
+            m = b.time.size
+            p = (b.pw @ coef).reshape(m, 3) + self.origin[b.target]
+            v = (b.vw @ coef).reshape(m, 3)
+            pred, h = predict(b.fields, np.hstack([p, v]), b.pose, jacobian=jacobian)  # type: ignore[arg-type]
+            r = residual(b.fields, np.nan_to_num(b.values), pred) / b.sigmas
+            use = b.valid & ~self.gated.get(bi, np.zeros_like(b.valid))
+            res.append(r[use])
+            tags.append(('station', bi, use))
+            if jacobian:
+                assert h is not None
+                hw = h / b.sigmas[:, :, None]
+                jm = _row_contract(hw[:, :, :3], b.pw) + _row_contract(hw[:, :, 3:], b.vw)
+                jm = jm[np.flatnonzero(use.ravel())]
+                jac.append(_shift(jm, self.offsets[b.target], self.n))
+        for tb in self.telemetry:
+            coef = self._coef(beta, tb.target)
+            ecoef = beta[tb.offset : tb.offset + 3 * tb.axis.n_coef]
+            m = tb.time.size
+            pred_p = (tb.pw @ coef + tb.ew @ ecoef).reshape(m, 3) + self.origin[tb.target]
+            pred_v = (tb.vw @ coef + tb.edw @ ecoef).reshape(m, 3)
+            sp_, sv_ = tb.noise
+            rp = ((np.nan_to_num(tb.position) - pred_p) / sp_)[tb.valid_p].ravel()
+            rv = ((np.nan_to_num(tb.velocity) - pred_v) / sv_)[tb.valid_v].ravel()
+            prior = ecoef / np.tile([tb.prior_sigma[0]], ecoef.size)
+            res.extend([rp, rv, -prior])
+            tags.append(('telemetry_position', tb.target, tb.valid_p))
+            tags.append(('telemetry_velocity', tb.target, tb.valid_v))
+            tags.append(('telemetry_prior', tb.target, np.ones(ecoef.size, dtype=bool)))
+            if jacobian:
+                rows_p = np.flatnonzero(np.repeat(tb.valid_p, 3))
+                rows_v = np.flatnonzero(np.repeat(tb.valid_v, 3))
+                o = self.offsets[tb.target]
+                jp = _shift(tb.pw[rows_p], o, self.n) + _shift(tb.ew[rows_p], tb.offset, self.n)
+                jv = _shift(tb.vw[rows_v], o, self.n) + _shift(tb.edw[rows_v], tb.offset, self.n)
+                jac.extend([jp / sp_, jv / sv_])
+                pj = sp.identity(ecoef.size, format='csr') / tb.prior_sigma[0]
+                jac.append(-_shift(pj, tb.offset, self.n))
+        for fb in self.fixes:
+            coef = self._coef(beta, fb.target)
+            m = fb.time.size
+            d = fb.position - (fb.pw @ coef).reshape(m, 3) - self.origin[fb.target]
+            r = np.einsum('mij,mj->mi', fb.whiten, d)[fb.valid].ravel()
+            res.append(r)
+            tags.append(('fix', fb.target, fb.valid))
+            if jacobian:
+                wblk = sp.block_diag(list(fb.whiten), format='csr')
+                jm = (wblk @ fb.pw)[np.flatnonzero(np.repeat(fb.valid, 3))]
+                jac.append(_shift(jm, self.offsets[fb.target], self.n))
+        r_all = np.concatenate(res) if res else np.zeros(0)
+        j_all = sp.vstack(jac).tocsr() if jacobian and jac else None
+        return r_all, j_all, tags
+
+    def cost(self, beta: FloatArray) -> float:
+        r, _, _ = self.evaluate(beta, False)
+        return float(r @ r)
+
+
+# ---------------------------------------------------------------------------------------
+# solver
+
+
+@dataclass
+class _GnOutcome:
+    beta: FloatArray
+    cost: float
+    iterations: int
+    halvings: int
+    converged: bool
+    message: str
+
+
+DAMPING = 1e-10
+"""Relative (Jacobi-scaled) damping of the normal matrix: directions the data do not
+determine to better than 1e-10 of the best-determined one stay where they are instead of
+running away (Levenberg-Marquardt with a fixed, tiny lambda)."""
+
+
+def _normal_solve(n: FloatArray, g: FloatArray) -> tuple[FloatArray, float, bool]:
+    d = np.sqrt(np.maximum(np.diag(n), 1e-300))
+    ns = n / d[:, None] / d[None, :]
+    ns[np.diag_indices_from(ns)] += DAMPING
+    try:
+        cf = sla.cho_factor(ns, check_finite=False)
+        step = sla.cho_solve(cf, g / d, check_finite=False) / d
+        ok = True
+    except np.linalg.LinAlgError:
+        step = np.linalg.lstsq(ns, g / d, rcond=1e-12)[0] / d
+        ok = False
+    ev = np.linalg.eigvalsh(ns)
+    cond = float(ev[-1] / ev[0]) if ev[0] > 0 else math.inf
+    return step, cond, ok
+
+
+def _gauss_newton(prob: _Problem, beta: FloatArray, cfg: EstimatorConfig) -> _GnOutcome:
+    r, jac, _ = prob.evaluate(beta, True)
+    cost = float(r @ r)
+    halvings = 0
+    for it in range(1, cfg.max_iterations + 1):
+        assert jac is not None
+        n = (jac.T @ jac).toarray()
+        g = jac.T @ r
+        step, _, _ = _normal_solve(n, g)
+        omega = 1.0
+        for _ in range(cfg.max_halvings + 1):
+            trial = beta + omega * step
+            c_new = prob.cost(trial)
+            if c_new <= cost:
+                break
+            omega *= 0.5
+            halvings += 1
+        else:
+            return _GnOutcome(beta, cost, it, halvings, True, 'no step reduces the cost')
+        change = cost - c_new
+        beta = trial
+        r, jac, _ = prob.evaluate(beta, True)
+        cost = float(r @ r)
+        if change <= cfg.tolerance * max(cost, 1.0):
+            return _GnOutcome(beta, cost, it, halvings, True, 'converged')
+    return _GnOutcome(beta, cost, cfg.max_iterations, halvings, False, 'iteration limit')
+
+
+def _gate(prob: _Problem, beta: FloatArray, gate: float) -> bool:
+    """Mark station rows whose whitened residual exceeds ``gate``; True if it changed."""
+    changed = False
+    for bi, b in enumerate(prob.stations):
+        coef = prob._coef(beta, b.target)
+        m = b.time.size
+        x = np.hstack(
+            [(b.pw @ coef).reshape(m, 3) + prob.origin[b.target], (b.vw @ coef).reshape(m, 3)]
+        )
+        pred, _ = predict(b.fields, x, b.pose)  # type: ignore[arg-type]
+        r = residual(b.fields, np.nan_to_num(b.values), pred) / b.sigmas
+        new = b.valid & (np.abs(r) > gate)
+        old = prob.gated.get(bi)
+        if old is None or not np.array_equal(old, new):
+            changed = True
+        prob.gated[bi] = new
+    return changed
+
+
+def _reestimate_telemetry_noise(prob: _Problem, beta: FloatArray) -> bool:
+    changed = False
+    for tb in prob.telemetry:
+        coef = prob._coef(beta, tb.target)
+        ecoef = beta[tb.offset : tb.offset + 3 * tb.axis.n_coef]
+        m = tb.time.size
+        ep = tb.position - (tb.pw @ coef + tb.ew @ ecoef).reshape(m, 3) - prob.origin[tb.target]
+        ep = ep[tb.valid_p]
+        ev = (tb.velocity - (tb.vw @ coef + tb.edw @ ecoef).reshape(m, 3))[tb.valid_v]
+        new = [
+            max(float(np.sqrt(np.mean(ep**2))), 1e-3) if ep.size else tb.noise[0],
+            max(float(np.sqrt(np.mean(ev**2))), 1e-5) if ev.size else tb.noise[1],
+        ]
+        if any(abs(a - b) > 0.05 * b for a, b in zip(new, tb.noise, strict=True)):
+            changed = True
+        tb.noise = new
+    return changed
+
+
+# ---------------------------------------------------------------------------------------
+# the window
+
+
+def _polynomial_selection(
+    rough: RoughTrajectory, t0: float, t1: float, degree: int
+) -> KnotSelection:
+    from orbit_tracking.core.knots import _fit_rough, spline_frame
+
+    start = _time.perf_counter()
+    frame = spline_frame(rough)
+    ax = SplineAxis.from_interior([], t0, t1, degree)
+    traj = SplineTrajectory((ax, ax, ax), frame[0], frame[1])
+    coef = _fit_rough(traj, rough, 0.5)
+    return KnotSelection(
+        traj, coef, (), (0, 0, 0), (0, 0, 0), 0, 0.0, _time.perf_counter() - start, 'polynomial'
+    )
+
+
+def _rough_from_previous(prev: TargetSolution, t0: float, t1: float) -> RoughTrajectory | None:
+    a, b = max(t0, prev.t0), min(t1, prev.t1)
+    if b - a < 1.0:
+        return None
+    t = np.linspace(a, b, max(10, int((b - a) * 10) + 1))
+    x = prev.trajectory.states(prev.coef, t)
+    return RoughTrajectory('previous window', t, x[:, :3], x[:, 3:], 0.1, 0.01)
+
+
+def estimate(
+    obs: Observations,
+    t0: float,
+    t1: float,
+    cfg: EstimatorConfig | None = None,
+    target_ids: Sequence[int] | None = None,
+    previous: Mapping[int, TargetSolution] | None = None,
+    frame: tuple[FloatArray, FloatArray] | None = None,
+) -> Estimate:
+    """Estimate the trajectories of ``target_ids`` over [t0, t1] from ``obs``.
+
+    Parameters
+    ----------
+    obs : Observations
+        Measurements (rows outside [t0, t1] are ignored).
+    t0, t1 : float
+        Window span [s].
+    cfg : EstimatorConfig
+    target_ids : sequence of int, optional
+        Default: every target with measurements.
+    previous : mapping of target id to TargetSolution, optional
+        The previous window's solution: the initial guess where it overlaps, and the
+        rough trajectory when no telemetry or fixes exist.
+    frame : (origin, rotation), optional
+        Spline frame (e.g. the launch frame); default a launch-like frame at the first
+        rough point.
+
+    Raises
+    ------
+    EstimationError
+        No measurements, or no rough trajectory to start from.
+    """
+    cfg = cfg or EstimatorConfig()
+    if not t1 > t0:
+        raise EstimationError(f'window must have t1 > t0; got [{t0}, {t1}]')
+    obs = obs.window(t0, t1)
+    ids = list(target_ids) if target_ids is not None else obs.target_ids
+    if not ids:
+        raise EstimationError(f'no measurements in window [{t0:.3f}, {t1:.3f}]')
+    k_start = _time.perf_counter()
+    selections: dict[int, KnotSelection] = {}
+    segments: dict[int, tuple[Segment, ...]] = {}
+    for tid in ids:
+        rough = rough_trajectory(obs, tid, t0, t1)
+        if rough is None and previous and tid in previous:
+            rough = _rough_from_previous(previous[tid], t0, t1)
+        if rough is None:
+            raise EstimationError(
+                f'target {tid}: no telemetry, fixes or previous solution in '
+                f'[{t0:.3f}, {t1:.3f}] to start from'
+            )
+        segs = list(cfg.segments)
+        if cfg.detect_segments:
+            segs += find_incomplete_segments(obs, tid, rough.state, t0, t1, cfg.coverage)
+        segs = merge_segments([(max(a, t0), min(b, t1)) for a, b in segs])
+        segments[tid] = tuple(segs)
+        if cfg.knot_method == 'polynomial':
+            sel = _polynomial_selection(rough, t0, t1, cfg.polynomial_degree)
+        else:
+            sel = choose_knots(
+                rough, t0, t1, segs, cfg.knots, cfg.knot_method, frame, cfg.baseline_spacing
+            )
+        if previous and tid in previous:
+            sel = _seed_from_previous(sel, previous[tid], rough)
+        selections[tid] = sel
+    knot_time = _time.perf_counter() - k_start
+    s_start = _time.perf_counter()
+    prob = _Problem(obs, {t: (s.trajectory, s.coef) for t, s in selections.items()}, cfg, t0, t1)
+    beta = np.zeros(prob.n)
+    for tid, s in selections.items():
+        o = prob.offsets[tid]
+        beta[o : o + s.trajectory.n_coef] = s.coef
+    out = _gauss_newton(prob, beta, cfg)
+    iterations, halvings = out.iterations, out.halvings
+    for _ in range(max(cfg.gate_rounds, 1)):
+        changed = False
+        if cfg.estimate_telemetry_noise and prob.telemetry:
+            changed |= _reestimate_telemetry_noise(prob, out.beta)
+        if cfg.gate_sigma > 0.0:
+            changed |= _gate(prob, out.beta, cfg.gate_sigma)
+        if not changed:
+            break
+        out = _gauss_newton(prob, out.beta, cfg)
+        iterations += out.iterations
+        halvings += out.halvings
+    r, jac, tags = prob.evaluate(out.beta, True)
+    assert jac is not None
+    n = (jac.T @ jac).toarray()
+    d = np.sqrt(np.maximum(np.diag(n), 1e-300))
+    ns = n / d[:, None] / d[None, :]
+    ev = np.linalg.eigvalsh(ns)
+    cond = float(ev[-1] / ev[0]) if ev[0] > 0 else math.inf
+    try:
+        cov = sla.cho_solve(sla.cho_factor(ns), np.eye(prob.n)) / d[:, None] / d[None, :]
+        singular = False
+    except np.linalg.LinAlgError:
+        cov = np.linalg.pinv(ns) / d[:, None] / d[None, :]
+        singular = True
+    solve_time = _time.perf_counter() - s_start
+    used: Counter[str] = Counter()
+    rejected: Counter[tuple[str, str]] = Counter()
+    residuals: dict[str, tuple[FloatArray, tuple[str, ...], FloatArray]] = {}
+    for bi, b in enumerate(prob.stations):
+        g = prob.gated.get(bi, np.zeros_like(b.valid))
+        used[b.station] += int((b.valid & ~g).sum())
+        if g.any():
+            rejected[(b.station, 'residual_gate')] += int(g.sum())
+        nan = int((~b.valid).sum())
+        if nan:
+            rejected[(b.station, 'not_measured')] += nan
+        coef = prob._coef(out.beta, b.target)
+        m = b.time.size
+        x = np.hstack(
+            [(b.pw @ coef).reshape(m, 3) + prob.origin[b.target], (b.vw @ coef).reshape(m, 3)]
+        )
+        pred, _ = predict(b.fields, x, b.pose)  # type: ignore[arg-type]
+        rr = residual(b.fields, b.values, pred) / b.sigmas
+        rr[g] = np.nan
+        residuals[b.station if b.target == ids[0] else f'{b.station}/{b.target}'] = (
+            b.time,
+            b.fields,
+            rr,
+        )
+    for tb in prob.telemetry:
+        used[f'telemetry_{tb.target}'] += int(tb.valid_p.sum() + tb.valid_v.sum())
+    dof = max(r.size - prob.n, 1)
+    targets = {}
+    for tid, s in selections.items():
+        o = prob.offsets[tid]
+        nt = s.trajectory.n_coef
+        tel = next((tb for tb in prob.telemetry if tb.target == tid), None)
+        targets[tid] = TargetSolution(
+            tid,
+            s.trajectory,
+            out.beta[o : o + nt].copy(),
+            cov[o : o + nt, o : o + nt].copy(),
+            s,
+            segments[tid],
+            None
+            if tel is None
+            else (tel.axis, out.beta[tel.offset : tel.offset + 3 * tel.axis.n_coef].copy()),
+            None if tel is None else (tel.noise[0], tel.noise[1]),
+        )
+    msg = out.message + (
+        '; normal matrix singular (pseudo-inverse covariance)' if singular else ''
+    )
+    return Estimate(
+        success=out.converged and not singular,
+        message=msg,
+        t0=t0,
+        t1=t1,
+        targets=targets,
+        iterations=iterations,
+        halvings=halvings,
+        cost=out.cost,
+        chi2_dof=out.cost / dof,
+        condition=cond,
+        n_parameters=prob.n,
+        used=used,
+        rejected=rejected,
+        residuals=residuals,
+        knot_time=knot_time,
+        solve_time=solve_time,
+        covariance=cov,
+    )
+
+
+def _seed_from_previous(
+    sel: KnotSelection, prev: TargetSolution, rough: RoughTrajectory
+) -> KnotSelection:
+    """Initial coefficients: the previous window's trajectory where it overlaps, the
+    rough trajectory beyond."""
+    from dataclasses import replace
+
+    traj = sel.trajectory
+    a, b = max(traj.t0, prev.t0), min(traj.t1, prev.t1)
+    if b - a < 1.0:
+        return sel
+    t_prev = np.linspace(a, b, max(10, int((b - a) * 10) + 1))
+    xp = prev.trajectory.states(prev.coef, t_prev)
+    keep = rough.time > b
+    t = np.concatenate([t_prev, rough.time[keep]])
+    state = rough.state(rough.time[keep])
+    pos = np.vstack([xp[:, :3], state[:, :3]])
+    vel = np.vstack([xp[:, 3:], state[:, 3:]])
+    try:
+        coef = traj.fit_states(t, pos, vel, 1.0, 100.0)
+    except np.linalg.LinAlgError:
+        return sel
+    return replace(sel, coef=coef)
