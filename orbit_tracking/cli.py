@@ -10,7 +10,8 @@ Subcommands::
     orbit-tracking demo [--scenario NAME] [--out DIR] the main job: simulate, triangulate,
                                                       a live pass over DDS, report with plots
     orbit-tracking report RUN_DIR                     redraw the report of a demo run
-    orbit-tracking bench [--seeds N] [--write-docs]   accuracy vs truth and CRB, wall time
+    orbit-tracking bench [--suite S] [--seeds N] [--write-docs]
+                                                      accuracy vs truth and CRB, wall time
 
 Run ``orbit-tracking <command> --help`` for the options of each.
 """
@@ -18,6 +19,7 @@ Run ``orbit-tracking <command> --help`` for the options of each.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from collections.abc import Sequence
@@ -263,20 +265,43 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         write_docs,
     )
 
-    t0 = time.monotonic()
-    rows = bench_triangulation(
-        args.scenarios or TRIANGULATION_SCENARIOS, args.seeds, not args.quiet
-    )
-    text = markdown_table(rows, args.seeds)
-    text += (
-        f'\n\nMeasured by `orbit-tracking bench --seeds {args.seeds}` on {platform.machine()} '
-        f'({platform.python_implementation()} {platform.python_version()}) in '
-        f'{time.monotonic() - t0:.0f} s.'
-    )
-    print(text)
-    if args.write_docs:
-        write_docs(args.docs, 'triangulation', text)
-        print(f'updated {args.docs}')
+    def footer(t0: float) -> str:
+        return (
+            f'\n\nMeasured by `orbit-tracking bench --suite {args.suite} --seeds {args.seeds}` '
+            f'on {platform.machine()} ({platform.python_implementation()} '
+            f'{platform.python_version()}, {os.cpu_count()} cores) in '
+            f'{time.monotonic() - t0:.0f} s.'
+        )
+
+    if args.suite in ('triangulation', 'all'):
+        t0 = time.monotonic()
+        rows = bench_triangulation(
+            args.scenarios or TRIANGULATION_SCENARIOS, args.seeds, not args.quiet
+        )
+        text = markdown_table(rows, args.seeds) + footer(t0)
+        print(text)
+        if args.write_docs:
+            write_docs(args.docs, 'triangulation', text)
+            print(f'updated {args.docs}')
+    if args.suite in ('estimator', 'all'):
+        from orbit_tracking.bench_estimator import (
+            ESTIMATOR_SCENARIOS,
+            bench_estimator,
+            estimator_tables,
+        )
+
+        t0 = time.monotonic()
+        plots = Path(args.docs).parent / 'bench' if args.write_docs else args.plots
+        erows = bench_estimator(
+            args.scenarios or ESTIMATOR_SCENARIOS, args.seeds, not args.quiet, plots
+        )
+        text = estimator_tables(erows, args.seeds) + footer(t0)
+        if plots:
+            text += f' Error plots (seed 0): `{plots}/<scenario>_<method>.png`.'
+        print(text)
+        if args.write_docs:
+            write_docs(args.docs, 'estimator', text)
+            print(f'updated {args.docs}')
     return 0
 
 
@@ -403,6 +428,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument('--write-docs', action='store_true', help='update docs/BENCHMARKS.md')
     s.add_argument('--docs', default='docs/BENCHMARKS.md', help='file updated by --write-docs')
     s.add_argument('--quiet', action='store_true', help='no progress lines')
+    s.add_argument(
+        '--suite',
+        choices=('triangulation', 'estimator', 'all'),
+        default='all',
+        help='which benchmark to run (default: all)',
+    )
+    s.add_argument('--plots', type=Path, help='folder for the estimator error plots')
     s.set_defaults(func=_cmd_bench)
 
     s = sub.add_parser('report', help='redraw the report of a demo run folder')

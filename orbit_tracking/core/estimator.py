@@ -33,7 +33,7 @@ import math
 import time as _time
 from collections import Counter
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.linalg as sla
@@ -100,6 +100,10 @@ class EstimatorConfig:
         Re-estimate the telemetry white-noise levels from the residuals.
     fix_weight : float
         Fixes as measurements with covariance / ``fix_weight``; 0 = not used.
+    refine_rounds : int
+        Rounds of measurement-driven knot insertion after the solve (0 = off).
+    refine_alpha : float
+        Family-wise false-alarm probability of that knot test.
     segments : tuple of (start, end)
         Declared incomplete segments [s] (added to the detected ones).
     detect_segments : bool
@@ -119,6 +123,8 @@ class EstimatorConfig:
     telemetry_error_spacing: float = 15.0
     estimate_telemetry_noise: bool = True
     fix_weight: float = 0.0
+    refine_rounds: int = 4
+    refine_alpha: float = 0.01
     segments: tuple[Segment, ...] = ()
     detect_segments: bool = True
     coverage: CoverageConfig = field(default_factory=CoverageConfig)
@@ -380,8 +386,8 @@ class _Problem:
                             float(np.median(tel.position_sigma)),
                             float(np.median(tel.velocity_sigma)),
                         ],
-                        np.isfinite(tel.position).all(axis=1),
-                        np.isfinite(tel.velocity).all(axis=1),
+                        np.asarray(np.isfinite(tel.position).all(axis=1)),
+                        np.asarray(np.isfinite(tel.velocity).all(axis=1)),
                     )
                 )
                 n += 3 * axis.n_coef
@@ -399,11 +405,12 @@ class _Problem:
                         fx.position,
                         w,
                         self.trajs[tid].world_design(fx.time, 0),
-                        np.isfinite(fx.position).all(axis=1),
+                        np.asarray(np.isfinite(fx.position).all(axis=1)),
                     )
                 )
         self.n = n
         self.gated: dict[int, NDArray[np.bool_]] = {}
+        self.rows: list[tuple[int, FloatArray, FloatArray, FloatArray]] = []
 
     # -- evaluation ------------------------------------------------------------------
 
@@ -418,6 +425,8 @@ class _Problem:
         res: list[FloatArray] = []
         jac: list[sp.csr_matrix] = []
         tags: list[tuple[str, int, NDArray[np.bool_]]] = []
+        # per residual row: target, time, dF/dp and dF/dv (whitened), for the knot test
+        rows: list[tuple[int, FloatArray, FloatArray, FloatArray]] = []
         for bi, b in enumerate(self.stations):
             coef = self._coef(beta, b.target)
             m = b.time.size
@@ -434,6 +443,8 @@ class _Problem:
                 jm = _row_contract(hw[:, :, :3], b.pw) + _row_contract(hw[:, :, 3:], b.vw)
                 jm = jm[np.flatnonzero(use.ravel())]
                 jac.append(_shift(jm, self.offsets[b.target], self.n))
+                tt = np.broadcast_to(b.time[:, None], use.shape)[use]
+                rows.append((b.target, tt, hw[:, :, :3][use], hw[:, :, 3:][use]))
         for tb in self.telemetry:
             coef = self._coef(beta, tb.target)
             ecoef = beta[tb.offset : tb.offset + 3 * tb.axis.n_coef]
@@ -457,6 +468,15 @@ class _Problem:
                 jac.extend([jp / sp_, jv / sv_])
                 pj = sp.identity(ecoef.size, format='csr') / tb.prior_sigma[0]
                 jac.append(-_shift(pj, tb.offset, self.n))
+                eye = np.eye(3)
+                for valid, sig, vel in ((tb.valid_p, sp_, False), (tb.valid_v, sv_, True)):
+                    nv = int(valid.sum())
+                    unit = np.tile(eye / sig, (nv, 1))
+                    zero = np.zeros_like(unit)
+                    tt = np.repeat(tb.time[valid], 3)
+                    rows.append((tb.target, tt, zero if vel else unit, unit if vel else zero))
+                z = np.zeros((ecoef.size, 3))
+                rows.append((-1, np.zeros(ecoef.size), z, z))
         for fb in self.fixes:
             coef = self._coef(beta, fb.target)
             m = fb.time.size
@@ -468,8 +488,13 @@ class _Problem:
                 wblk = sp.block_diag(list(fb.whiten), format='csr')
                 jm = (wblk @ fb.pw)[np.flatnonzero(np.repeat(fb.valid, 3))]
                 jac.append(_shift(jm, self.offsets[fb.target], self.n))
+                wv = fb.whiten[fb.valid].reshape(-1, 3)
+                tt = np.repeat(fb.time[fb.valid], 3)
+                rows.append((fb.target, tt, wv, np.zeros_like(wv)))
         r_all = np.concatenate(res) if res else np.zeros(0)
         j_all = sp.vstack(jac).tocsr() if jacobian and jac else None
+        if jacobian:
+            self.rows = rows
         return r_all, j_all, tags
 
     def cost(self, beta: FloatArray) -> float:
@@ -579,6 +604,166 @@ def _reestimate_telemetry_noise(prob: _Problem, beta: FloatArray) -> bool:
     return changed
 
 
+def _solve(prob: _Problem, beta: FloatArray, cfg: EstimatorConfig) -> tuple[_GnOutcome, int, int]:
+    """Gauss-Newton, then telemetry noise re-estimation and residual gating, repeated
+    until neither changes (at most ``gate_rounds`` times)."""
+    out = _gauss_newton(prob, beta, cfg)
+    iterations, halvings = out.iterations, out.halvings
+    for _ in range(max(cfg.gate_rounds, 1)):
+        changed = False
+        if cfg.estimate_telemetry_noise and prob.telemetry:
+            changed |= _reestimate_telemetry_noise(prob, out.beta)
+        if cfg.gate_sigma > 0.0:
+            changed |= _gate(prob, out.beta, cfg.gate_sigma)
+        if not changed:
+            break
+        out = _gauss_newton(prob, out.beta, cfg)
+        iterations += out.iterations
+        halvings += out.halvings
+    return out, iterations, halvings
+
+
+def _covariance(
+    prob: _Problem, beta: FloatArray
+) -> tuple[FloatArray, sp.csr_matrix, FloatArray, float, bool]:
+    """Residuals, Jacobian, ``(J^T J)^-1``, condition number of the scaled normal matrix,
+    and whether it was singular."""
+    r, jac, _ = prob.evaluate(beta, True)
+    if jac is None:
+        raise EstimationError('no measurement rows to estimate from')
+    n = (jac.T @ jac).toarray()
+    d = np.sqrt(np.maximum(np.diag(n), 1e-300))
+    ns = n / d[:, None] / d[None, :]
+    ev = np.linalg.eigvalsh(ns)
+    cond = float(ev[-1] / ev[0]) if ev[0] > 0 else math.inf
+    try:
+        cov = sla.cho_solve(sla.cho_factor(ns), np.eye(prob.n)) / d[:, None] / d[None, :]
+        singular = False
+    except np.linalg.LinAlgError:
+        cov = np.linalg.pinv(ns) / d[:, None] / d[None, :]
+        singular = True
+    return r, jac, cov, cond, singular
+
+
+def _refine_knots(
+    prob: _Problem,
+    r: FloatArray,
+    jac: sp.csr_matrix,
+    cov: FloatArray,
+    cfg: EstimatorConfig,
+) -> dict[int, list[SplineAxis]]:
+    """Knots the measurements ask for (beyond the paper).
+
+    For every knot interval of every axis, a score (Lagrange-multiplier) test of adding
+    a knot at its midpoint: with ``j`` the Jacobian column of the new basis function,
+    ``s = (j^T r)^2 / (j^T j - (J^T j)^T (J^T J)^-1 (J^T j))`` is chi-square(1) when the
+    spline already represents the trajectory. Midpoints with ``s`` above the Bonferroni
+    quantile at ``refine_alpha`` are inserted. This catches what the rough trajectory
+    could not show (its noise hides model errors the measurements resolve).
+    """
+    from scipy.interpolate import BSpline
+    from scipy.stats import chi2
+
+    tgt = np.concatenate([np.full(t.size, k) for k, t, _, _ in prob.rows])
+    tim = np.concatenate([t for _, t, _, _ in prob.rows])
+    hp = np.concatenate([h for _, _, h, _ in prob.rows])
+    hv = np.concatenate([h for _, _, _, h in prob.rows])
+    cands: list[tuple[int, int, float, float]] = []  # (target, axis, tau, score)
+    min_len = 2.0 * cfg.knots.min_spacing
+    for tid, traj in prob.trajs.items():
+        sel = np.flatnonzero(tgt == tid)
+        order = sel[np.argsort(tim[sel], kind='stable')]
+        ts = tim[order]
+        for a, ax in enumerate(traj.axes):
+            up = hp[order] @ traj.rotation[:, a]
+            uv = hv[order] @ traj.rotation[:, a]
+            brk = np.unique(ax.knots)
+            p = ax.degree
+            for lo, hi in zip(brk[:-1], brk[1:], strict=True):
+                if hi - lo < min_len:
+                    continue
+                tau = 0.5 * (lo + hi)
+                idx = int(np.searchsorted(ax.knots, tau))
+                refined = np.insert(ax.knots, idx, tau)
+                s0 = idx - 2
+                local = refined[s0 : s0 + p + 2]
+                i0, i1 = np.searchsorted(ts, [local[0], local[-1]])
+                if i1 - i0 < 2:
+                    continue
+                b = BSpline.basis_element(local, extrapolate=False)
+                tt = ts[i0:i1]
+                col = (
+                    np.nan_to_num(b(tt)) * up[i0:i1]
+                    + np.nan_to_num(b.derivative()(tt)) * uv[i0:i1]
+                )
+                ridx = order[i0:i1]
+                g = float(col @ r[ridx])
+                c = jac[ridx].T @ col
+                den = float(col @ col - c @ (cov @ c))
+                if den <= 1e-12 * float(col @ col):
+                    continue
+                cands.append((tid, a, tau, g * g / den))
+    if not cands:
+        return {}
+    limit = float(chi2.isf(cfg.refine_alpha / len(cands), 1))
+    out: dict[int, list[SplineAxis]] = {}
+    for tid, traj in prob.trajs.items():
+        axes = list(traj.axes)
+        changed = False
+        for a in range(3):
+            new = [tau for k, ax_, tau, sc in cands if k == tid and ax_ == a and sc > limit]
+            if new:
+                axes[a] = SplineAxis.from_interior(
+                    np.sort(np.concatenate([axes[a].interior, new])),
+                    axes[a].t0,
+                    axes[a].t1,
+                    axes[a].degree,
+                )
+                changed = True
+        if changed:
+            out[tid] = axes
+    return out
+
+
+def _rebuild(
+    prob: _Problem,
+    beta: FloatArray,
+    new_axes: Mapping[int, list[SplineAxis]],
+    obs: Observations,
+    cfg: EstimatorConfig,
+    t0: float,
+    t1: float,
+) -> tuple[_Problem, FloatArray]:
+    """The problem on refined knots, started from the current solution (refined knots
+    contain the old ones, so the current spline is represented exactly)."""
+    sols: dict[int, tuple[SplineTrajectory, FloatArray]] = {}
+    for tid, traj in prob.trajs.items():
+        coef = prob._coef(beta, tid)
+        if tid in new_axes:
+            nt = traj.with_axes(new_axes[tid])
+            brk = np.unique(np.concatenate([a.knots for a in nt.axes]))
+            ts = np.unique(
+                np.concatenate(
+                    [np.linspace(x0, x1, 8) for x0, x1 in zip(brk[:-1], brk[1:], strict=True)]
+                )
+            )
+            x = traj.states(coef, ts)
+            coef = nt.fit_states(ts, x[:, :3], x[:, 3:], 1.0, 1.0)
+            traj = nt
+        sols[tid] = (traj, coef)
+    new = _Problem(obs, sols, cfg, t0, t1)
+    new.gated = prob.gated
+    beta_new = np.zeros(new.n)
+    for tid, (traj, coef) in sols.items():
+        o = new.offsets[tid]
+        beta_new[o : o + traj.n_coef] = coef
+    for tb_new, tb_old in zip(new.telemetry, prob.telemetry, strict=True):
+        tb_new.noise = list(tb_old.noise)
+        n_e = 3 * tb_old.axis.n_coef
+        beta_new[tb_new.offset : tb_new.offset + n_e] = beta[tb_old.offset : tb_old.offset + n_e]
+    return new, beta_new
+
+
 # ---------------------------------------------------------------------------------------
 # the window
 
@@ -671,6 +856,7 @@ def estimate(
             )
         if previous and tid in previous:
             sel = _seed_from_previous(sel, previous[tid], rough)
+        sel = replace(sel, rough_source=rough.source)
         selections[tid] = sel
     knot_time = _time.perf_counter() - k_start
     s_start = _time.perf_counter()
@@ -679,32 +865,61 @@ def estimate(
     for tid, s in selections.items():
         o = prob.offsets[tid]
         beta[o : o + s.trajectory.n_coef] = s.coef
-    out = _gauss_newton(prob, beta, cfg)
-    iterations, halvings = out.iterations, out.halvings
-    for _ in range(max(cfg.gate_rounds, 1)):
-        changed = False
-        if cfg.estimate_telemetry_noise and prob.telemetry:
-            changed |= _reestimate_telemetry_noise(prob, out.beta)
-        if cfg.gate_sigma > 0.0:
-            changed |= _gate(prob, out.beta, cfg.gate_sigma)
-        if not changed:
+    out, iterations, halvings = _solve(prob, beta, cfg)
+    r, jac, cov, cond, singular = _covariance(prob, out.beta)
+    noisy = [t for t, s in selections.items() if s.rough_source == 'fixes']
+    if noisy and cfg.knot_method == 'sparse':
+        # fixes are a poor rough trajectory (no velocity, metres of noise): select the
+        # knots again on the first solution, which the raw measurements made precise
+        for tid in noisy:
+            sol = prob.trajs[tid]
+            coef = prob._coef(out.beta, tid)
+            o = prob.offsets[tid]
+            tt = np.linspace(t0, t1, max(50, int((t1 - t0) * 10) + 1))
+            x = sol.states(coef, tt)
+            pc = state_covariance(sol, cov[o : o + sol.n_coef, o : o + sol.n_coef], tt)
+            sp_ = float(np.sqrt(np.median(np.trace(pc[:, :3, :3], axis1=1, axis2=2)) / 3))
+            sv_ = float(np.sqrt(np.median(np.trace(pc[:, 3:, 3:], axis1=1, axis2=2)) / 3))
+            rough2 = RoughTrajectory('first solution', tt, x[:, :3], x[:, 3:], sp_, sv_)
+            sel2 = choose_knots(
+                rough2,
+                t0,
+                t1,
+                segments[tid],
+                cfg.knots,
+                'sparse',
+                (sol.origin, sol.rotation),
+                events=selections[tid].events,
+            )
+            selections[tid] = replace(sel2, rough_source='fixes, then first solution')
+        prob = _Problem(
+            obs, {t: (s.trajectory, s.coef) for t, s in selections.items()}, cfg, t0, t1
+        )
+        beta = np.zeros(prob.n)
+        for tid, s in selections.items():
+            o = prob.offsets[tid]
+            beta[o : o + s.trajectory.n_coef] = s.coef
+        out, it2, h2 = _solve(prob, beta, cfg)
+        iterations += it2
+        halvings += h2
+        r, jac, cov, cond, singular = _covariance(prob, out.beta)
+    added = {tid: 0 for tid in selections}
+    for _ in range(cfg.refine_rounds):
+        new_axes = _refine_knots(prob, r, jac, cov, cfg)
+        if not new_axes:
             break
-        out = _gauss_newton(prob, out.beta, cfg)
-        iterations += out.iterations
-        halvings += out.halvings
-    r, jac, tags = prob.evaluate(out.beta, True)
-    assert jac is not None
-    n = (jac.T @ jac).toarray()
-    d = np.sqrt(np.maximum(np.diag(n), 1e-300))
-    ns = n / d[:, None] / d[None, :]
-    ev = np.linalg.eigvalsh(ns)
-    cond = float(ev[-1] / ev[0]) if ev[0] > 0 else math.inf
-    try:
-        cov = sla.cho_solve(sla.cho_factor(ns), np.eye(prob.n)) / d[:, None] / d[None, :]
-        singular = False
-    except np.linalg.LinAlgError:
-        cov = np.linalg.pinv(ns) / d[:, None] / d[None, :]
-        singular = True
+        prob, beta = _rebuild(prob, out.beta, new_axes, obs, cfg, t0, t1)
+        for tid, axes in new_axes.items():
+            added[tid] += sum(a.interior.size for a in axes) - sum(
+                a.interior.size for a in selections[tid].trajectory.axes
+            )
+            selections[tid] = replace(selections[tid], trajectory=prob.trajs[tid])
+        out, it2, h2 = _solve(prob, beta, cfg)
+        iterations += it2
+        halvings += h2
+        r, jac, cov, cond, singular = _covariance(prob, out.beta)
+    for tid, n_added in added.items():
+        selections[tid] = replace(selections[tid], refined=n_added)
     solve_time = _time.perf_counter() - s_start
     used: Counter[str] = Counter()
     rejected: Counter[tuple[str, str]] = Counter()
@@ -779,7 +994,6 @@ def _seed_from_previous(
 ) -> KnotSelection:
     """Initial coefficients: the previous window's trajectory where it overlaps, the
     rough trajectory beyond."""
-    from dataclasses import replace
 
     traj = sel.trajectory
     a, b = max(traj.t0, prev.t0), min(traj.t1, prev.t1)

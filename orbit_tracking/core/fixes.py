@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from orbit_tracking.core.alignment import AlignConfig, Aligner
+from orbit_tracking.core.observations import FixSeries
 from orbit_tracking.core.simulation import SimulationResult
 from orbit_tracking.core.triangulation import Fix, Gates, triangulate
 
@@ -23,6 +24,7 @@ __all__ = [
     'TimedFix',
     'TriangulationPipeline',
     'feed_simulation',
+    'fix_series',
     'format_stamp',
     'read_fixes_csv',
     'write_fixes_csv',
@@ -161,3 +163,21 @@ def read_fixes_csv(path: str | Path) -> dict[str, FloatArray]:
     cols['position'] = np.column_stack([cols['x'], cols['y'], cols['z']])
     cols['covariance'] = cov
     return cols
+
+
+def fix_series(fixes: Iterable[TimedFix]) -> dict[int, FixSeries]:
+    """Fixes grouped per target as :class:`~orbit_tracking.core.observations.FixSeries`
+    (the estimator's rough trajectory when there is no telemetry)."""
+    groups: dict[int, list[TimedFix]] = {}
+    for f in fixes:
+        groups.setdefault(f.target_id, []).append(f)
+    out = {}
+    for tid, fs in groups.items():
+        fs.sort(key=lambda f: f.time)
+        out[tid] = FixSeries(
+            tid,
+            np.array([f.time for f in fs]),
+            np.array([f.fix.position for f in fs]),
+            np.array([f.fix.covariance for f in fs]),
+        )
+    return out

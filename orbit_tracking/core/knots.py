@@ -195,8 +195,8 @@ def spline_frame(rough: RoughTrajectory) -> tuple[FloatArray, FloatArray]:
     v = rough.state(rough.time[[0, -1]])[:, 3:].mean(axis=0)
     if len(rough) > 1:
         v = rough.position[-1] - rough.position[0]
-    h = v - up * (v @ up)
-    if np.linalg.norm(h) < 1e-6 * max(np.linalg.norm(v), 1.0):
+    h = v - up * float(v @ up)
+    if np.linalg.norm(h) < 1e-6 * max(float(np.linalg.norm(v)), 1.0):
         h = np.cross(np.array([0.0, 0.0, 1.0]), up)
         if np.linalg.norm(h) < 1e-9:
             h = np.array([1.0, 0.0, 0.0])
@@ -429,7 +429,7 @@ def select_knots(
     times: FloatArray,
     cfg: KnotConfig,
     fixed: Sequence[float] = (),
-) -> tuple[SplineAxis, FloatArray, dict[str, float]]:
+) -> tuple[SplineAxis, FloatArray, dict[str, float | str]]:
     """Seed 000's sparse optimisation (eq. 14) on one axis.
 
     Parameters
@@ -475,12 +475,13 @@ def select_knots(
     try:
         if solver == 'HIGHS':
             # interior point + crossover: a vertex (exact zeros) in half the simplex time
-            prob.solve(solver=solver, highs_options={'solver': 'ipm'})
+            prob.solve(solver=solver, highs_options={'solver': 'ipm'})  # type: ignore[no-untyped-call]
         else:
-            prob.solve(solver=solver)
+            prob.solve(solver=solver)  # type: ignore[no-untyped-call]
     except cp.error.SolverError as exc:
+        installed = cp.installed_solvers()  # type: ignore[no-untyped-call]
         raise KnotSelectionError(
-            f'knot selection: solver {solver} failed ({exc}); installed: {cp.installed_solvers()}'
+            f'knot selection: solver {solver} failed ({exc}); installed: {installed}'
         ) from exc
     elapsed = _time.perf_counter() - start
     if prob.status != cp.OPTIMAL or x.value is None:
@@ -531,6 +532,9 @@ class KnotSelection:
     total_time: float
     method: str
     info: dict[str, str] = field(default_factory=dict)
+    refined: int = 0
+    rough_source: str = ''
+    """Knots added afterwards by the estimator's measurement-driven test."""
 
 
 def choose_knots(
@@ -542,8 +546,11 @@ def choose_knots(
     method: str = 'sparse',
     frame: tuple[FloatArray, FloatArray] | None = None,
     baseline_spacing: float = 3.0,
+    events: Sequence[float] | None = None,
 ) -> KnotSelection:
     """Knots of the trajectory spline over [t0, t1].
+
+    ``events`` overrides the detection of acceleration jumps.
 
     ``method``: ``sparse`` (densify + l1 selection, the seed's method), ``dense``
     (densified grid, no selection: baseline (c)), ``dynamics`` (baseline (b): events +
@@ -551,7 +558,8 @@ def choose_knots(
     """
     start = _time.perf_counter()
     frame = frame or spline_frame(rough)
-    events = detect_events(rough, cfg) if cfg.events else []
+    if events is None:
+        events = detect_events(rough, cfg) if cfg.events else []
     events = [e for e in events if t0 + cfg.base_spacing / 2 < e < t1 - cfg.base_spacing / 2]
     solve = 0.0
     info: dict[str, str] = {}
