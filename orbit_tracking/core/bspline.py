@@ -78,8 +78,13 @@ class SplineAxis:
             raise ValueError(f'knot vector needs at least {2 * (p + 1)} knots; got {t.shape}')
         if np.any(np.diff(t) < 0.0):
             raise ValueError(f'knot vector must be non-decreasing; got {t[:6]}...')
-        if np.any(t[: p + 1] != t[0]) or np.any(t[-p - 1 :] != t[-1]):
-            raise ValueError(f'knot vector must be clamped ({p + 1} equal end knots)')
+        if (
+            np.any(t[: p + 1] != t[0])
+            or np.any(t[-p - 1 :] != t[-1])
+            or t[p + 1] == t[0]
+            or t[-p - 2] == t[-1]
+        ):
+            raise ValueError(f'knot vector must be clamped (exactly {p + 1} equal end knots)')
         _, counts = np.unique(t[p + 1 : -p - 1], return_counts=True)
         if counts.size and counts.max() > p:
             raise ValueError(f'an interior knot repeats more than degree = {p} times')
@@ -187,7 +192,10 @@ class SplineAxis:
         b = np.concatenate(rhs)
         n = (m.T @ m).toarray()
         scale = max(float(np.max(np.diag(n))), 1e-300)
-        n += ridge * scale * np.eye(self.n_coef)
+        # the ridge only defines coefficients that no datum touches; it does not pull
+        # the others toward zero
+        empty = np.diag(n) <= 1e-12 * scale
+        n[empty, empty] += ridge * scale + 1e-300
         return np.asarray(np.linalg.solve(n, m.T @ b))
 
 

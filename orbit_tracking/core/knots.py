@@ -117,9 +117,21 @@ class KnotConfig:
             raise ValueError(f'spline degree must be >= 2; got {self.degree}')
         if not (0.0 <= self.rho <= 1.0):
             raise ValueError(f'rho must lie in [0, 1]; got {self.rho}')
-        for name in ('base_spacing', 'gap_spacing', 'min_spacing', 'event_window'):
-            if getattr(self, name) <= 0.0:
+        positive = (
+            'base_spacing',
+            'gap_spacing',
+            'min_spacing',
+            'event_window',
+            'sigma_position',
+            'sigma_velocity',
+            'delta_position',
+            'delta_velocity',
+        )
+        for name in positive:
+            if not getattr(self, name) > 0.0:
                 raise ValueError(f'{name} must be > 0; got {getattr(self, name)}')
+        if self.jump_epsilon < 0.0 or self.max_rounds < 0:
+            raise ValueError('jump_epsilon and max_rounds must be >= 0')
         if self.solver.upper() not in SOLVERS:
             raise ValueError(f'solver must be one of {SOLVERS}; got {self.solver!r}')
 
@@ -208,8 +220,8 @@ def spline_frame(rough: RoughTrajectory) -> tuple[FloatArray, FloatArray]:
 def detect_events(rough: RoughTrajectory, cfg: KnotConfig) -> list[float]:
     """Times where the rough trajectory's acceleration jumps.
 
-    A straight line is fitted to the velocity over ``event_window`` on each side of
-    every sample; a jump of the slopes (the acceleration) by more than
+    A quadratic is fitted to the velocity over ``event_window`` on each side of every
+    sample; a jump of their slopes at the sample (the acceleration) by more than
     ``event_min_jump`` and ``event_sigma`` times its noise marks a candidate. The time
     of each event is then refined by fitting a continuous broken line to the velocity
     and searching the break on a grid of a twentieth of the sampling interval.
@@ -223,14 +235,22 @@ def detect_events(rough: RoughTrajectory, cfg: KnotConfig) -> list[float]:
     n = t.size
     if n < 2 * k + 1:
         return []
+    # quadratic fits on each side, differentiated at the candidate: a steady jerk gives
+    # the same acceleration from both sides, only a jump differs
+    tau = (np.arange(k + 1) - k) * dt
+    a_mat = np.column_stack([np.ones(k + 1), tau, tau**2])
+    pinv = np.linalg.pinv(a_mat)  # (3, k + 1); row 1 = slope at tau = 0
+    w_left = pinv[1]
+    w_right = -w_left[::-1]  # mirror: right window runs forward in time
     a_l = np.full((n, 3), np.nan)
     a_r = np.full((n, 3), np.nan)
-    for i in range(k, n - k):
-        a_l[i] = _slope(t[i - k : i + 1], v[i - k : i + 1])
-        a_r[i] = _slope(t[i : i + k + 1], v[i : i + k + 1])
+    for c in range(3):
+        a_l[k:, c] = np.convolve(v[:, c], w_left[::-1], mode='valid')
+        a_r[: n - k, c] = np.convolve(v[:, c], w_right[::-1], mode='valid')
     jump = np.linalg.norm(a_r - a_l, axis=1)
-    tt = t[i - k : i + 1] if n > k else t
-    sig_slope = rough.velocity_noise / np.sqrt(np.sum((tt - tt.mean()) ** 2))
+    jump[:k] = np.nan
+    jump[n - k :] = np.nan
+    sig_slope = rough.velocity_noise * float(np.sqrt(w_left @ w_left))
     threshold = max(cfg.event_min_jump, cfg.event_sigma * np.sqrt(2.0) * sig_slope * np.sqrt(3))
     cand = np.flatnonzero(np.nan_to_num(jump) > threshold)
     events: list[float] = []
@@ -239,11 +259,6 @@ def detect_events(rough: RoughTrajectory, cfg: KnotConfig) -> list[float]:
         events.append(_refine_event(t, v, t[i], cfg.event_window, dt))
         cand = cand[np.abs(t[cand] - t[i]) > cfg.event_window]
     return sorted(events)
-
-
-def _slope(t: FloatArray, y: FloatArray) -> FloatArray:
-    tc = t - t.mean()
-    return np.asarray((tc @ (y - y.mean(axis=0))) / (tc @ tc))
 
 
 def _refine_event(t: FloatArray, v: FloatArray, tc: float, w: float, dt: float) -> float:

@@ -1,0 +1,296 @@
+"""Knot placement (seed 000, section 3) and incomplete-segment detection: event
+detection on synthetic telemetry, densification and l1 selection on a polynomial
+trajectory, the knots chosen on seed 000's telemetry, and the 45-75 s gap found from the
+measurements of both seed 000 scenarios."""
+
+from __future__ import annotations
+
+from functools import cache
+
+import numpy as np
+import pytest
+
+from orbit_tracking.core.coverage import (
+    CoverageConfig,
+    find_incomplete_segments,
+    merge_segments,
+)
+from orbit_tracking.core.knots import (
+    KnotConfig,
+    KnotSelectionError,
+    RoughTrajectory,
+    choose_knots,
+    densify,
+    detect_events,
+    rough_trajectory,
+    select_knots,
+    uniform_knots,
+)
+from orbit_tracking.core.observations import Observations
+from orbit_tracking.core.scenario import load_scenario
+from orbit_tracking.core.simulation import World, simulate
+
+DT = 0.05  # s, the 20 Hz telemetry of seed 000
+
+
+@cache
+def _seed000(name: str) -> tuple[World, Observations]:
+    sc = load_scenario(name)
+    world = World(sc)
+    return world, Observations.from_simulation(simulate(sc, world))
+
+
+def _broken_line_track(
+    rng: np.random.Generator, t_jump: float, noise_v: float = 0.02
+) -> RoughTrajectory:
+    """Telemetry of a vehicle whose acceleration jumps at ``t_jump`` (continuous velocity:
+    thrust cut-off), with white velocity and position noise."""
+    t = np.arange(0.0, 20.0 + 1e-9, DT)[:, None]
+    a1 = np.array([30.0, 10.0, -2.0])  # m/s^2 under thrust
+    a2 = np.array([-5.0, -9.0, 0.5])  # m/s^2 after cut-off
+    v0 = np.array([800.0, 600.0, 10.0])
+    before, after = np.minimum(t - t_jump, 0.0), np.maximum(t - t_jump, 0.0)
+    v = v0 + a1 * before + a2 * after
+    p = v0 * t + 0.5 * a1 * before**2 + 0.5 * a2 * after**2
+    return RoughTrajectory(
+        'telemetry',
+        t.ravel(),
+        p + rng.standard_normal(p.shape) * 1.0,
+        v + rng.standard_normal(v.shape) * noise_v,
+        1.0,
+        noise_v,
+    )
+
+
+def _polynomial(rng: np.random.Generator) -> np.ndarray:
+    """Coefficients (5, 3) of a degree-4 ascent-like polynomial per axis [m]: accelerations
+    of 5-25 m/s^2 and jerks below 1 m/s^3, as in seed 000's powered flight."""
+    c = np.zeros((5, 3))
+    c[0] = rng.uniform(-5e3, 5e3, 3)
+    c[1] = rng.uniform(-800.0, 800.0, 3)
+    c[2] = rng.uniform(-8.0, 8.0, 3)
+    c[3] = rng.uniform(-0.02, 0.02, 3)
+    c[4] = rng.uniform(-5e-4, 5e-4, 3)
+    return c
+
+
+def _polynomial_track(
+    rng: np.random.Generator, t: np.ndarray, noise_p: float, noise_v: float
+) -> tuple[RoughTrajectory, np.ndarray, np.ndarray]:
+    c = _polynomial(rng)
+    pp = np.polynomial.polynomial
+    pos = np.stack([pp.polyval(t, c[:, k]) for k in range(3)], axis=1)
+    vel = np.stack([pp.polyval(t, pp.polyder(c[:, k])) for k in range(3)], axis=1)
+    rough = RoughTrajectory(
+        'telemetry',
+        t,
+        pos + rng.standard_normal(pos.shape) * noise_p,
+        vel + rng.standard_normal(vel.shape) * noise_v,
+        noise_p,
+        noise_v,
+    )
+    return rough, pos, vel
+
+
+# ---------------------------------------------------------------------------------------
+# events
+
+
+@pytest.mark.parametrize('seed', range(5))
+def test_detect_events_finds_an_acceleration_jump_to_a_tenth_of_the_sampling_interval(seed):
+    rng = np.random.default_rng(seed)
+    t_jump = 8.0 + rng.uniform(0.0, 4.0)  # anywhere between samples
+    events = detect_events(_broken_line_track(rng, t_jump), KnotConfig())
+    assert len(events) == 1, events
+    # measured: within 0.03 sampling intervals over 30 seeds
+    assert abs(events[0] - t_jump) < 0.1 * DT
+
+
+@pytest.mark.parametrize('seed', range(3))
+def test_detect_events_finds_none_on_a_smooth_track(seed):
+    rng = np.random.default_rng(100 + seed)
+    rough, _, _ = _polynomial_track(rng, np.arange(0.0, 20.0 + 1e-9, DT), 1.0, 0.02)
+    assert detect_events(rough, KnotConfig()) == []
+
+
+def test_detect_events_finds_none_on_a_steady_jerk():
+    t = np.arange(0.0, 20.0 + 1e-9, DT)
+    jerk = 2.5  # m/s^3, noise-free
+    v = np.zeros((t.size, 3))
+    v[:, 0] = 0.5 * jerk * t**2
+    p = np.zeros((t.size, 3))
+    p[:, 0] = jerk * t**3 / 6.0
+    rough = RoughTrajectory('telemetry', t, p, v, 1e-3, 1e-3)
+    assert detect_events(rough, KnotConfig()) == []
+
+
+def test_detect_events_needs_velocity_samples():
+    rng = np.random.default_rng(4)
+    r = _broken_line_track(rng, 10.0)
+    fixes = RoughTrajectory('fixes', r.time, r.position, None, 1.0, 0.0)
+    assert detect_events(fixes, KnotConfig()) == []
+
+
+# ---------------------------------------------------------------------------------------
+# densification and sparse selection
+
+
+@pytest.fixture(scope='module')
+def polynomial_densified():
+    rng = np.random.default_rng(7)
+    t = np.arange(0.0, 30.0 + 1e-9, DT)
+    # little rough-trajectory noise: the tolerances are then delta, not 3 sigma of the fit
+    rough, pos, vel = _polynomial_track(rng, t, 0.05, 0.002)
+    cfg = KnotConfig()
+    frame = (np.zeros(3), np.eye(3))
+    axes, coefs, covs, rounds = densify(rough, frame, 0.0, 30.0, [], [], cfg)
+    return rough, pos, vel, cfg, axes, coefs, covs, rounds
+
+
+def test_densify_fits_a_polynomial_track_on_the_base_grid_within_sigma(polynomial_densified):
+    rough, pos, vel, cfg, axes, coefs, _, rounds = polynomial_densified
+    # a polynomial needs no insertion: the 1 s grid stays as it is
+    assert rounds == 0
+    np.testing.assert_allclose(axes[0].interior, np.arange(1.0, 30.0))
+    for a in range(3):
+        assert np.max(np.abs(axes[a].evaluate(coefs[a], rough.time) - pos[:, a])) < (
+            cfg.sigma_position
+        )
+        assert np.max(np.abs(axes[a].evaluate(coefs[a], rough.time, 1) - vel[:, a])) < (
+            cfg.sigma_velocity
+        )
+
+
+def test_select_knots_drops_every_knot_of_a_degree_four_polynomial(polynomial_densified):
+    rough, pos, vel, cfg, axes, coefs, covs, _ = polynomial_densified
+    for a in range(3):
+        reduced, jumps, info = select_knots(axes[a], coefs[a], covs[a], rough.time, cfg)
+        assert info['status'] == 'optimal'
+        assert jumps.shape == (axes[a].interior.size,)
+        # a degree-4 polynomial has no 4th-derivative jump: every knot goes
+        assert reduced.interior.size == 0, reduced.interior
+        assert np.max(np.abs(jumps)) <= cfg.jump_epsilon
+        # and the reduced basis still holds the densified fit within delta
+        dense_p = axes[a].evaluate(coefs[a], rough.time)
+        dense_v = axes[a].evaluate(coefs[a], rough.time, 1)
+        w = np.full(rough.time.size, 1.0)
+        c = reduced.fit(rough.time, dense_p, w, rough.time, dense_v, w, ridge=0.0)
+        assert np.max(np.abs(reduced.evaluate(c, rough.time) - dense_p)) <= cfg.delta_position
+        err_v = np.max(np.abs(reduced.evaluate(c, rough.time, 1) - dense_v))
+        assert err_v <= cfg.delta_velocity
+        # and the truth within delta too
+        assert np.max(np.abs(reduced.evaluate(c, rough.time) - pos[:, a])) <= cfg.delta_position
+
+
+def test_select_knots_keeps_the_fixed_event_knots(polynomial_densified):
+    rough, _, _, cfg, axes, coefs, covs, _ = polynomial_densified
+    reduced, jumps, _ = select_knots(axes[0], coefs[0], covs[0], rough.time, cfg, fixed=[12.0])
+    np.testing.assert_array_equal(reduced.interior, [12.0])
+    assert jumps.shape == (axes[0].interior.size - 1,)
+
+
+def test_select_knots_raises_for_a_solver_that_is_not_installed(polynomial_densified):
+    import cvxpy as cp
+
+    rough, _, _, _, axes, coefs, covs, _ = polynomial_densified
+    if 'ECOS' in cp.installed_solvers():
+        pytest.skip('ECOS is installed here; no missing solver to ask for')
+    with pytest.raises(KnotSelectionError, match='solver ECOS failed.*installed'):
+        select_knots(axes[0], coefs[0], covs[0], rough.time, KnotConfig(solver='ECOS'))
+
+
+def test_knot_config_rejects_an_unknown_solver():
+    with pytest.raises(ValueError, match='solver must be one of'):
+        KnotConfig(solver='GUROBI_TYPO')
+
+
+# ---------------------------------------------------------------------------------------
+# seed 000
+
+
+@pytest.fixture(scope='module')
+def seed000_selection():
+    _, obs = _seed000('seed000_s1')
+    rough = rough_trajectory(obs, 0, 0.0, 94.0)
+    assert rough is not None and rough.source == 'telemetry'
+    return choose_knots(rough, 0.0, 94.0, [(45.0, 75.0)], KnotConfig())
+
+
+def test_choose_knots_on_seed000_keeps_far_fewer_knots_than_the_dense_grid(seed000_selection):
+    sel = seed000_selection
+    # measured: 219 dense interior knots per axis (1 s, 0.2 s in the gap) -> 9, 8, 6
+    for dense, kept in zip(sel.dense, sel.selected, strict=True):
+        assert dense > 150
+        assert kept < dense / 5
+
+
+def test_choose_knots_on_seed000_repeats_knots_at_the_staging_events(seed000_selection):
+    """Stage-1 cut-off 33.4 s into the span, stage-2 ignition 1.5 s later."""
+    sel = seed000_selection
+    deg = KnotConfig().degree
+    np.testing.assert_allclose(sel.events, [33.4, 34.9], atol=0.1 * DT)
+    for ax in sel.trajectory.axes:
+        for event in sel.events:
+            assert np.sum(np.abs(ax.interior - event) < 1e-9) == deg - 1
+        # no other knot is repeated
+        _, counts = np.unique(ax.interior, return_counts=True)
+        assert np.sum(counts > 1) == 2
+
+
+def test_uniform_knots_repeat_events_and_refine_segments():
+    k = uniform_knots(0.0, 10.0, 1.0, [(4.0, 6.0)], 0.5, [7.02], degree=4)
+    np.testing.assert_allclose(
+        k, [1, 2, 3, 4, 4.5, 5, 5.5, 6, 7.02, 7.02, 7.02, 8, 9], rtol=0.0, atol=1e-12
+    )
+
+
+# ---------------------------------------------------------------------------------------
+# incomplete segments
+
+
+@pytest.mark.parametrize('name', ['seed000_s1', 'seed000_s2'])
+@pytest.mark.parametrize('bin_s', [0.5, 1.0, 2.0])
+def test_find_incomplete_segments_recovers_the_seed000_gap_within_a_bin(name, bin_s):
+    world, obs = _seed000(name)
+    segs = find_incomplete_segments(
+        obs, 0, lambda t: world.target_state(0, t), 0.0, 94.0, CoverageConfig(bin=bin_s)
+    )
+    assert len(segs) == 1, segs
+    np.testing.assert_allclose(segs[0], (45.0, 75.0), rtol=0.0, atol=bin_s + 1e-9)
+
+
+def test_find_incomplete_segments_finds_nothing_where_every_station_measures():
+    world, obs = _seed000('seed000_s1')
+    segs = find_incomplete_segments(obs, 0, lambda t: world.target_state(0, t), 0.0, 40.0)
+    assert segs == []
+
+
+def test_find_incomplete_segments_marks_a_window_without_measurements_whole():
+    world, obs = _seed000('seed000_s1')
+    assert find_incomplete_segments(
+        obs.without_telemetry(), 7, lambda t: world.target_state(0, t), 0.0, 10.0
+    ) == [(0.0, 10.0)]
+
+
+@pytest.mark.parametrize(
+    ('segments', 'join', 'expected'),
+    [
+        ([], 0.0, []),
+        ([(3.0, 4.0), (1.0, 2.0)], 0.0, [(1.0, 2.0), (3.0, 4.0)]),  # sorted
+        ([(1.0, 3.0), (2.0, 4.0)], 0.0, [(1.0, 4.0)]),  # overlapping
+        ([(1.0, 2.0), (2.0, 3.0)], 0.0, [(1.0, 3.0)]),  # touching
+        ([(1.0, 2.0), (2.4, 3.0)], 0.5, [(1.0, 3.0)]),  # closer than join
+        ([(1.0, 2.0), (2.6, 3.0)], 0.5, [(1.0, 2.0), (2.6, 3.0)]),
+        ([(1.0, 5.0), (2.0, 3.0)], 0.0, [(1.0, 5.0)]),  # contained
+        ([(2.0, 2.0), (3.0, 1.0), (4.0, 5.0)], 0.0, [(4.0, 5.0)]),  # empty ones dropped
+    ],
+)
+def test_merge_segments_returns_the_sorted_union(segments, join, expected):
+    assert merge_segments(segments, join) == expected
+
+
+def test_coverage_config_rejects_bad_values():
+    with pytest.raises(ValueError, match='bin > 0'):
+        CoverageConfig(bin=0.0)
+    with pytest.raises(ValueError, match='factor > 1'):
+        CoverageConfig(factor=1.0)
