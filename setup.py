@@ -27,6 +27,7 @@ console_scripts = [
     'station_sim = orbit_tracking.ros.station_sim:main',
     'scenario_sim = orbit_tracking.ros.scenario_sim:main',
     'triangulation = orbit_tracking.ros.triangulation_node:main',
+    'estimator = orbit_tracking.ros.estimator_node:main',
     'orbit-tracking = orbit_tracking.cli:main',
 ]
 

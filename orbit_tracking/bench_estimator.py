@@ -57,12 +57,14 @@ class Method:
     name: str
     config: EstimatorConfig
     polynomial_over_gap: bool = False
+    windows: bool = False
 
 
 def methods() -> list[Method]:
-    base = EstimatorConfig()
+    base = EstimatorConfig(use_telemetry=True)
     return [
         Method('ours+telemetry', base),
+        Method('ours+telemetry, 60 s windows', base, windows=True),
         Method('ours', dataclasses.replace(base, use_telemetry=False)),
         Method('seed000', dataclasses.replace(base, use_telemetry=False, refine_rounds=0)),
         Method(
@@ -129,8 +131,29 @@ def fixes_for(result: SimulationResult) -> Observations:
     return Observations.from_simulation(result, fix_series(pipe.flush()))
 
 
+class _Stitched:
+    """The windows' stitched trajectory, with the interface of a TargetSolution."""
+
+    def __init__(self, estimates: Sequence[Estimate], target_id: int) -> None:
+        self.estimates = estimates
+        self.target_id = target_id
+        self.t0 = min(e.t0 for e in estimates)
+        self.t1 = max(e.t1 for e in estimates)
+
+    def states(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        from orbit_tracking.core.windows import stitch
+
+        tt, x, cov = stitch(self.estimates, t, self.target_id)
+        if tt.size != np.asarray(t).size:
+            raise OrbitTrackingError('stitched windows do not cover the evaluation times')
+        return x, cov
+
+
 def _evaluate(
-    sol: TargetSolution, result: SimulationResult, gaps: Sequence[tuple[float, float]], pool: _Pool
+    sol: TargetSolution | _Stitched,
+    result: SimulationResult,
+    gaps: Sequence[tuple[float, float]],
+    pool: _Pool,
 ) -> None:
     tr = result.truth[sol.target_id]
     m = (tr.time >= sol.t0) & (tr.time <= sol.t1)
@@ -158,7 +181,7 @@ def _run(method: Method, obs: Observations, sc: Scenario) -> tuple[Estimate, flo
         t0, t1 = max(t0, a - POLY_MARGIN_S), min(t1, b + POLY_MARGIN_S)
     start = time.perf_counter()
     est = estimate(obs, t0, t1, method.config, target_ids=[sc.target_ids[0]])
-    return est, time.perf_counter() - start
+    return est, time.perf_counter() - start, None
 
 
 def bench_estimator(
@@ -183,13 +206,13 @@ def bench_estimator(
                     continue
                 pool = pools[method.name]
                 try:
-                    est, wall = _run(method, obs, sc)
+                    est, wall, stitched = _run(method, obs, sc)
+                    sol = est.targets[sc.target_ids[0]]
+                    gaps = list(sc.gaps)
+                    _evaluate(stitched or sol, result, gaps, pool)
                 except OrbitTrackingError as exc:
                     pool.failures.append(str(exc))
                     continue
-                sol = est.targets[sc.target_ids[0]]
-                gaps = list(sc.gaps)
-                _evaluate(sol, result, gaps, pool)
                 if gaps:
                     pool.params_gap.append(sol.parameters_in(*gaps[0]))
                 pool.dense.append(sol.knots.dense)

@@ -7,6 +7,8 @@ Subcommands::
     orbit-tracking record --out DIR                   record the contract topics from DDS
     orbit-tracking play BAG [--rate R]                publish a bag's messages over DDS
     orbit-tracking triangulate BAG --out DIR          fixes.csv from a bag's lines of sight
+    orbit-tracking estimate BAG --out DIR             trajectory.csv from a bag, estimated in
+                                                      the estimator node's sliding windows
     orbit-tracking demo [--scenario NAME] [--out DIR] the main job: simulate, triangulate,
                                                       a live pass over DDS, report with plots
     orbit-tracking report RUN_DIR                     redraw the report of a demo run
@@ -136,6 +138,36 @@ def _cmd_triangulate(args: argparse.Namespace) -> int:
     gates = Gates(args.min_angle, args.max_gdop, args.miss_probability)
     t0 = time.monotonic()
     report = triangulate_bag(args.bag, args.out, align, gates, args.target_id, not args.quiet)
+    for line in report.lines():
+        print(line)
+    print(f'wrote {", ".join(str(f) for f in report.files)} ({time.monotonic() - t0:.1f} s)')
+    return 0
+
+
+def _cmd_estimate(args: argparse.Namespace) -> int:
+    import shutil
+
+    from orbit_tracking.core.estimator import EstimatorConfig
+    from orbit_tracking.core.windows import WindowConfig
+    from orbit_tracking.ros.offline import estimate_bag
+
+    try:
+        win = WindowConfig(args.window_length, args.overlap, output_step=args.output_step)
+    except ValueError as exc:
+        print(f'orbit-tracking estimate: error: {exc}', file=sys.stderr)
+        return 2
+    est = EstimatorConfig(knot_method=args.knot_method, use_telemetry=args.telemetry)
+    if not Path(args.bag).is_dir():
+        raise FileNotFoundError(f'no bag folder {args.bag}')
+    out = Path(args.out)
+    if out.exists() and any(out.iterdir()):
+        if not args.force:
+            raise FileExistsError(
+                f'{out} exists; pass --force to replace it or choose another --out'
+            )
+        shutil.rmtree(out)
+    t0 = time.monotonic()
+    report = estimate_bag(args.bag, out, est, win, not args.quiet)
     for line in report.lines():
         print(line)
     print(f'wrote {", ".join(str(f) for f in report.files)} ({time.monotonic() - t0:.1f} s)')
@@ -407,6 +439,34 @@ def build_parser() -> argparse.ArgumentParser:
     )
     s.add_argument('--quiet', action='store_true', help='no progress bar')
     s.set_defaults(func=_cmd_triangulate)
+
+    s = sub.add_parser('estimate', help='estimate the trajectory of a bag in sliding windows')
+    s.add_argument('bag', help='rosbag2 folder with stations/<id>/measurements and state')
+    s.add_argument(
+        '--out', required=True, help='output folder (trajectory.csv, bag/, summary.yaml)'
+    )
+    s.add_argument('--window-length', type=float, default=60.0, help='window length [s]')
+    s.add_argument(
+        '--overlap', type=float, default=20.0, help='overlap of consecutive windows [s]'
+    )
+    s.add_argument(
+        '--output-step', type=float, default=0.1, help='spacing of the output states [s]'
+    )
+    s.add_argument(
+        '--telemetry',
+        action='store_true',
+        help='fuse telemetry as measurements with its own error model (default: telemetry only '
+        'places the knots; the fused covariance is still optimistic)',
+    )
+    s.add_argument(
+        '--knot-method',
+        choices=('sparse', 'dynamics', 'uniform', 'dense', 'polynomial'),
+        default='sparse',
+        help="knot placement: the seed's sparse selection (default) or a baseline",
+    )
+    s.add_argument('--force', action='store_true', help='replace an existing output folder')
+    s.add_argument('--quiet', action='store_true', help='no progress bars')
+    s.set_defaults(func=_cmd_estimate)
 
     s = sub.add_parser('demo', help='the main job: simulate, triangulate, live DDS pass, report')
     s.add_argument('--scenario', default='seed000_s1', help='scenario name or YAML path')

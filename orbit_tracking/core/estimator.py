@@ -46,6 +46,7 @@ from orbit_tracking.core.errors import OrbitTrackingError
 from orbit_tracking.core.knots import (
     KnotConfig,
     KnotSelection,
+    KnotSelectionError,
     RoughTrajectory,
     choose_knots,
     rough_trajectory,
@@ -55,6 +56,7 @@ from orbit_tracking.core.measurements import predict, residual
 from orbit_tracking.core.observations import Observations
 
 __all__ = [
+    'KNOT_METHODS',
     'EstimationError',
     'Estimate',
     'EstimatorConfig',
@@ -66,7 +68,7 @@ __all__ = [
 FloatArray = NDArray[np.float64]
 Segment = tuple[float, float]
 
-KNOT_METHODS = ('sparse', 'dense', 'uniform', 'dynamics', 'polynomial')
+KNOT_METHODS: tuple[str, ...] = ('sparse', 'dense', 'uniform', 'dynamics', 'polynomial')
 
 
 class EstimationError(OrbitTrackingError, RuntimeError):
@@ -93,7 +95,9 @@ class EstimatorConfig:
     gate_sigma : float
         Whitened-residual gate (0 disables it); ``gate_rounds`` re-solves at most.
     use_telemetry : bool
-        Fuse telemetry as weighted measurements with its own error model.
+        Fuse telemetry as weighted measurements with its own error model. Off by
+        default: the fused covariance is still optimistic (NEES above the band when the
+        telemetry drift bends faster than its error spline), see docs/ESTIMATOR.md.
     telemetry_error_spacing : float
         Knot spacing [s] of the telemetry error spline (cubic).
     estimate_telemetry_noise : bool
@@ -119,7 +123,7 @@ class EstimatorConfig:
     max_halvings: int = 12
     gate_sigma: float = 5.0
     gate_rounds: int = 3
-    use_telemetry: bool = True
+    use_telemetry: bool = False
     telemetry_error_spacing: float = 15.0
     estimate_telemetry_noise: bool = True
     fix_weight: float = 0.0
@@ -851,9 +855,14 @@ def estimate(
         if cfg.knot_method == 'polynomial':
             sel = _polynomial_selection(rough, t0, t1, cfg.polynomial_degree)
         else:
-            sel = choose_knots(
-                rough, t0, t1, segs, cfg.knots, cfg.knot_method, frame, cfg.baseline_spacing
-            )
+            try:
+                sel = choose_knots(
+                    rough, t0, t1, segs, cfg.knots, cfg.knot_method, frame, cfg.baseline_spacing
+                )
+            except KnotSelectionError as exc:
+                # a failed LP must not lose the window: keep the densified knots instead
+                sel = choose_knots(rough, t0, t1, segs, cfg.knots, 'dense', frame)
+                sel = replace(sel, info={'fallback': f'densified knots kept: {exc}'})
         if previous and tid in previous:
             sel = _seed_from_previous(sel, previous[tid], rough)
         sel = replace(sel, rough_source=rough.source)

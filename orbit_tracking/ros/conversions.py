@@ -6,7 +6,9 @@ Layouts follow ``docs/CONTRACT.md``:
   value and ``sigma_<field>`` fields, ``time_offset`` (FLOAT64, s) and ``target_id``
   (UINT32), little-endian, ``height = 1``, dense;
 * station states, telemetry, truth and fitted states: ``nav_msgs/Odometry``;
-* triangulation fixes: ``geometry_msgs/PoseWithCovarianceStamped``.
+* triangulation fixes: ``geometry_msgs/PoseWithCovarianceStamped``;
+* a window's fitted states (internal, ``estimator/window_states``): ``PointCloud2`` with
+  :data:`WINDOW_STATE_FIELDS`.
 
 Times: the core computes in float seconds relative to a :class:`TimeBase` (an integer
 number of nanoseconds, by default the scenario epoch), so that float64 keeps
@@ -23,7 +25,7 @@ from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from sensor_msgs.msg import PointCloud2, PointField
 
 from orbit_tracking.core import frames
@@ -35,7 +37,10 @@ __all__ = [
     'StationStateSample',
     'TargetStateSample',
     'TimeBase',
+    'WINDOW_STATE_FIELDS',
+    'WindowStates',
     'cloud_to_measurements',
+    'cloud_to_window_states',
     'diagnostic_array',
     'diagnostic_status',
     'fix_to_msg',
@@ -48,6 +53,7 @@ __all__ = [
     'target_frame_id',
     'target_id_from_frame',
     'target_state_to_odometry',
+    'window_states_to_cloud',
 ]
 
 FloatArray = NDArray[np.float64]
@@ -433,6 +439,191 @@ def msg_to_fix(
     """``(t, position (3,), covariance (3, 3))`` of a fix."""
     cov = np.asarray(msg.pose.covariance, dtype=np.float64).reshape(6, 6)[:3, :3]
     return timebase.to_seconds(msg.header.stamp), _point(msg.pose.pose.position), cov
+
+
+WINDOW_STATE_FIELDS: tuple[str, ...] = (
+    'time_offset',
+    'x',
+    'y',
+    'z',
+    'vx',
+    'vy',
+    'vz',
+    *(f'c_{i}{j}' for i in range(6) for j in range(i, 6)),
+)
+"""FLOAT64 fields of ``estimator/window_states`` (then ``target_id``, UINT32): the
+offset [s] of the point's time from ``header.stamp``, world position [m] and velocity
+[m/s], and the 21 upper-triangle entries ``c_<i><j>`` (i <= j) of their 6x6 covariance in
+the order (x, y, z, vx, vy, vz)."""
+
+_UPPER = np.triu_indices(6)
+
+
+@dataclass(frozen=True)
+class WindowStates:
+    """Decoded ``estimator/window_states``: one window's fitted states.
+
+    Attributes
+    ----------
+    world_frame : str
+    t0 : float
+        Window start (``header.stamp``) in TimeBase seconds.
+    time : ndarray, shape (m,)
+        Time of each state [s] (TimeBase).
+    target_id : ndarray of uint32, shape (m,)
+    state : ndarray, shape (m, 6)
+        World position [m] and velocity [m/s].
+    covariance : ndarray, shape (m, 6, 6)
+    """
+
+    world_frame: str
+    t0: float
+    time: FloatArray
+    target_id: NDArray[np.uint32]
+    state: FloatArray
+    covariance: FloatArray
+
+
+def _window_dtype() -> np.dtype:
+    names = [*WINDOW_STATE_FIELDS, 'target_id']
+    formats = ['<f8'] * len(WINDOW_STATE_FIELDS) + ['<u4']
+    offsets = [8 * i for i in range(len(names))]
+    itemsize = (offsets[-1] + 4 + 7) // 8 * 8
+    return np.dtype({'names': names, 'formats': formats, 'offsets': offsets, 'itemsize': itemsize})
+
+
+def window_states_to_cloud(
+    world_frame: str,
+    t0: float,
+    time: ArrayLike,
+    target_id: ArrayLike,
+    state: ArrayLike,
+    covariance: ArrayLike,
+    timebase: TimeBase,
+) -> PointCloud2:
+    """Pack one window's fitted states into ``estimator/window_states``.
+
+    Parameters
+    ----------
+    world_frame : str
+        ``header.frame_id``.
+    t0 : float
+        Window start [s]; ``header.stamp``, and ``time_offset = time - t0``.
+    time : ndarray, shape (m,)
+    target_id : int or ndarray of uint32, shape (m,)
+    state : ndarray, shape (m, 6)
+    covariance : ndarray, shape (m, 6, 6)
+
+    Raises
+    ------
+    ValueError
+        Inconsistent shapes, non-finite values, an empty frame id.
+    """
+    t = np.atleast_1d(np.asarray(time, dtype=np.float64))
+    m = t.size
+    x = np.asarray(state, dtype=np.float64)
+    c = np.asarray(covariance, dtype=np.float64)
+    if not world_frame:
+        raise ValueError('window states need a world frame (header.frame_id)')
+    if x.shape != (m, 6) or c.shape != (m, 6, 6):
+        raise ValueError(
+            f'window states need state (m, 6) and covariance (m, 6, 6) for {m} times; got '
+            f'{x.shape} and {c.shape}'
+        )
+    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(x)) and np.all(np.isfinite(c))):
+        raise ValueError('window states must be finite')
+    dtype = _window_dtype()
+    arr = np.zeros(m, dtype=dtype)
+    t0_ns = timebase.to_ns(t0)
+    arr['time_offset'] = t - (t0_ns - timebase.ref_ns) * 1e-9
+    for j, name in enumerate(('x', 'y', 'z', 'vx', 'vy', 'vz')):
+        arr[name] = x[:, j]
+    upper = c[:, _UPPER[0], _UPPER[1]]
+    for k, name in enumerate(WINDOW_STATE_FIELDS[7:]):
+        arr[name] = upper[:, k]
+    arr['target_id'] = np.broadcast_to(np.asarray(target_id, dtype=np.uint32), (m,))
+    msg = PointCloud2()
+    msg.header.stamp = Time(sec=t0_ns // 1_000_000_000, nanosec=t0_ns % 1_000_000_000)
+    msg.header.frame_id = world_frame
+    msg.height = 1
+    msg.width = m
+    msg.fields = [
+        PointField(name=name, offset=int(dtype.fields[name][1]), datatype=_dt(name), count=1)
+        for name in dtype.names
+    ]
+    msg.is_bigendian = False
+    msg.point_step = dtype.itemsize
+    msg.row_step = dtype.itemsize * m
+    msg.data = arr.tobytes()
+    msg.is_dense = True
+    return msg
+
+
+def cloud_to_window_states(msg: PointCloud2, timebase: TimeBase) -> WindowStates:
+    """Decode and validate ``estimator/window_states``.
+
+    Raises
+    ------
+    ValueError
+        A missing field or one of the wrong datatype or count, data shorter than
+        ``width * height * point_step``, non-finite values, or a covariance with a negative
+        variance.
+    """
+    by_name = {f.name: f for f in msg.fields}
+    names = [*WINDOW_STATE_FIELDS, 'target_id']
+    missing = [n for n in names if n not in by_name]
+    if missing:
+        raise ValueError(f'window states message lacks field(s) {missing}')
+    for n in names:
+        f = by_name[n]
+        want = _dt(n)
+        if f.datatype != want or f.count != 1:
+            raise ValueError(
+                f'window states field {n!r} has datatype {f.datatype} and count {f.count}; '
+                f'expected datatype {want} and count 1'
+            )
+    m = int(msg.width) * int(msg.height)
+    step = int(msg.point_step)
+    if step <= 0 or len(msg.data) < m * step:
+        raise ValueError(
+            f'window states data has {len(msg.data)} bytes, expected width*height*point_step '
+            f'= {m * step}'
+        )
+    if any(by_name[n].offset + _size(n) > step for n in names):
+        raise ValueError('a window states field lies beyond point_step')
+    endian = '>' if msg.is_bigendian else '<'
+    dtype = np.dtype(
+        {
+            'names': names,
+            'formats': [endian + ('u4' if n == 'target_id' else 'f8') for n in names],
+            'offsets': [by_name[n].offset for n in names],
+            'itemsize': step,
+        }
+    )
+    arr = np.frombuffer(bytes(msg.data), dtype=dtype, count=m)
+    t0 = timebase.to_seconds(msg.header.stamp)
+    x = np.column_stack([arr[n].astype(np.float64) for n in ('x', 'y', 'z', 'vx', 'vy', 'vz')])
+    c = np.zeros((m, 6, 6))
+    for k, n in enumerate(WINDOW_STATE_FIELDS[7:]):
+        i, j = int(_UPPER[0][k]), int(_UPPER[1][k])
+        c[:, i, j] = c[:, j, i] = arr[n]
+    off = arr['time_offset'].astype(np.float64)
+    if not (np.all(np.isfinite(off)) and np.all(np.isfinite(x)) and np.all(np.isfinite(c))):
+        raise ValueError('window states message holds non-finite values')
+    if np.any(np.diagonal(c, axis1=1, axis2=2) < 0.0):
+        raise ValueError('window states message holds a negative variance')
+    return WindowStates(
+        msg.header.frame_id,
+        t0,
+        t0 + off,
+        arr['target_id'].astype(np.uint32),
+        x,
+        c,
+    )
+
+
+def _size(name: str) -> int:
+    return 4 if name == 'target_id' else 8
 
 
 def diagnostic_status(

@@ -1,5 +1,6 @@
 """Offline processing of recorded bags (no running nodes): the same pipelines as the
-nodes, fed from a rosbag2 in log-time order."""
+nodes, fed from a rosbag2 in log-time order: :func:`triangulate_bag` (the triangulation
+node) and :func:`estimate_bag` (the estimator node's windows, stitched)."""
 
 from __future__ import annotations
 
@@ -13,23 +14,48 @@ import yaml
 from tqdm import tqdm
 
 from orbit_tracking.core.alignment import AlignConfig
-from orbit_tracking.core.errors import MeasurementError
-from orbit_tracking.core.fixes import TimedFix, TriangulationPipeline, write_fixes_csv
+from orbit_tracking.core.buffer import ObservationBuffer
+from orbit_tracking.core.errors import MeasurementError, OrbitTrackingError
+from orbit_tracking.core.estimator import Estimate, EstimationError, EstimatorConfig
+from orbit_tracking.core.fixes import (
+    TimedFix,
+    TriangulationPipeline,
+    fix_series,
+    write_fixes_csv,
+)
 from orbit_tracking.core.metrics import NeesSummary, hermite_states, nees, nees_summary
+from orbit_tracking.core.observations import Observations
 from orbit_tracking.core.simulation import TargetStates
 from orbit_tracking.core.triangulation import Gates
+from orbit_tracking.core.windows import (
+    Span,
+    WindowConfig,
+    output_times,
+    solve_windows,
+    stitch,
+    write_trajectory_csv,
+)
 from orbit_tracking.ros import qos
 from orbit_tracking.ros.bag import BagWriter, bag_custom_data, read_bag
 from orbit_tracking.ros.conversions import (
     TimeBase,
     cloud_to_measurements,
     fix_to_msg,
+    msg_to_fix,
     odometry_to_station_state,
     odometry_to_target_state,
     stamp_ns,
+    target_state_to_odometry,
+    window_states_to_cloud,
 )
 
-__all__ = ['BagContext', 'TriangulationReport', 'triangulate_bag']
+__all__ = [
+    'BagContext',
+    'EstimationReport',
+    'TriangulationReport',
+    'estimate_bag',
+    'triangulate_bag',
+]
 
 
 @dataclass
@@ -236,6 +262,367 @@ def triangulate_bag(
             tid: {'mean': s.mean, 'n': s.n, 'lo': s.lo, 'hi': s.hi, 'consistent': s.consistent}
             for tid, s in report.nees.items()
         },
+    }
+    (out / 'summary.yaml').write_text(yaml.safe_dump(summary, sort_keys=False))
+    files.append(out / 'summary.yaml')
+    return report
+
+
+# ---------------------------------------------------------------------------------------
+# sliding-window estimation
+
+
+@dataclass
+class EstimationReport:
+    """Outcome of :func:`estimate_bag`.
+
+    ``times``, ``state`` (m, 6) and ``covariance`` (m, 6, 6) are the stitched trajectory
+    of ``target_id`` (the lowest target id solved).
+    """
+
+    estimates: list[Estimate]
+    failures: list[tuple[Span, str]]
+    target_id: int
+    times: np.ndarray
+    state: np.ndarray
+    covariance: np.ndarray
+    counts: Counter[str]
+    context: BagContext
+    rough: str
+    files: list[Path]
+    evaluation: dict[int, dict[str, dict[str, float]]] = field(default_factory=dict)
+
+    def lines(self) -> list[str]:
+        """Human-readable summary."""
+        n_ok = sum(e.success for e in self.estimates)
+        n_all = len(self.estimates) + len(self.failures)
+        its = sum(e.iterations for e in self.estimates)
+        used = sum(
+            v for e in self.estimates for k, v in e.used.items() if not k.startswith('telemetry')
+        )
+        rej = sum(sum(e.rejected.values()) for e in self.estimates)
+        chi2 = [e.chi2_dof for e in self.estimates]
+        out = [
+            f'{n_all} windows: {n_ok} converged, {len(self.estimates) - n_ok} solved with a '
+            f'warning, {len(self.failures)} failed; {its} Gauss-Newton iterations; '
+            f'chi2/dof {min(chi2, default=math.nan):.3f}-{max(chi2, default=math.nan):.3f}; '
+            f'{used} measured values used, {rej} rejected; rough trajectory: {self.rough}',
+            f'{self.times.size} output states of target {self.target_id}'
+            + (
+                f' from {self.times[0]:.3f} s to {self.times[-1]:.3f} s' if self.times.size else ''
+            ),
+        ]
+        if self.counts:
+            out.append('input: ' + ', '.join(f'{k} {v}' for k, v in sorted(self.counts.items())))
+        for span, why in self.failures:
+            out.append(f'window [{span[0]:.3f}, {span[1]:.3f}] s failed: {why}')
+        for tid, parts in self.evaluation.items():
+            for where, ev in parts.items():
+                out.append(
+                    f'target {tid} vs truth {where.replace("_", " ")} ({int(ev["n"])} states): '
+                    f'position RMS {ev["rms_position_m"]:.3f} m (mean '
+                    f'{ev["mean_position_m"]:.3f} m), velocity RMS '
+                    f'{ev["rms_velocity_m_s"]:.4f} m/s (mean {ev["mean_velocity_m_s"]:.4f} '
+                    f'm/s), mean NEES {ev["mean_nees_position"]:.2f} (position, 3 dof), '
+                    f'{ev["mean_nees_state"]:.2f} (state, 6 dof)'
+                )
+        return out
+
+
+def _read_for_estimation(
+    bag: str | Path, ctx: BagContext, progress: bool
+) -> tuple[ObservationBuffer, Counter[str], dict[int, list[tuple[float, np.ndarray, np.ndarray]]]]:
+    """Measurements, station states, telemetry and fixes of a bag into a buffer (what the
+    node receives), and the truth rows."""
+    buf = ObservationBuffer()
+    counts: Counter[str] = Counter()
+    truth_rows: dict[int, list[tuple[float, np.ndarray, np.ndarray]]] = {}
+    for m in tqdm(read_bag(bag), unit='msg', disable=not progress, desc='read bag'):
+        topic = m.topic.lstrip('/')
+        parts = topic.split('/')
+        if len(parts) == 3 and parts[0] == 'stations' and parts[2] == 'measurements':
+            try:
+                b = cloud_to_measurements(m.msg, ctx.tb(stamp_ns(m.msg.header.stamp)))
+            except MeasurementError:
+                counts['invalid_messages'] += 1
+                continue
+            counts['rejected_points'] += b.rejected
+            if b.station_id != parts[1]:
+                counts['station_mismatch'] += 1
+                continue
+            buf.add_measurements(b.station_id, b.fields, b.time, b.target_id, b.values, b.sigmas)
+        elif len(parts) == 3 and parts[0] == 'stations' and parts[2] == 'state':
+            try:
+                st = odometry_to_station_state(m.msg, ctx.tb(stamp_ns(m.msg.header.stamp)))
+            except ValueError:
+                counts['invalid_state'] += 1
+                continue
+            if st.station_id != parts[1]:
+                counts['station_mismatch'] += 1
+                continue
+            ctx.world_frame = ctx.world_frame or m.msg.header.frame_id
+            buf.add_pose(st.station_id, st.time, st.position, st.velocity, st.rotation, st.moving)
+        elif topic == 'telemetry/state':
+            s = odometry_to_target_state(m.msg, ctx.tb(stamp_ns(m.msg.header.stamp)))
+            try:
+                buf.add_telemetry(
+                    s.target_id,
+                    s.time,
+                    s.position,
+                    s.velocity,
+                    np.sqrt(np.clip(np.diag(s.position_cov), 0.0, None)),
+                    np.sqrt(np.clip(np.diag(s.velocity_cov), 0.0, None)),
+                )
+            except ValueError:
+                counts['invalid_telemetry'] += 1
+        elif topic == 'triangulation/fixes':
+            t, p, c = msg_to_fix(m.msg, ctx.tb(stamp_ns(m.msg.header.stamp)))
+            try:
+                buf.add_fix(0, t, p, c)
+            except ValueError:
+                counts['invalid_fix'] += 1
+        elif topic == 'truth/state':
+            ts = odometry_to_target_state(m.msg, ctx.tb(stamp_ns(m.msg.header.stamp)))
+            truth_rows.setdefault(ts.target_id, []).append((ts.time, ts.position, ts.velocity))
+    return buf, +counts, truth_rows
+
+
+def _triangulated_fixes(bag: str | Path, ctx: BagContext, progress: bool) -> list[TimedFix]:
+    """Fixes of the bag's lines of sight (the rough trajectory when the bag has neither
+    telemetry nor fixes)."""
+    pipe = TriangulationPipeline()
+    for m in tqdm(read_bag(bag), unit='msg', disable=not progress, desc='triangulate'):
+        topic = m.topic.lstrip('/')
+        if topic.startswith('stations/') and topic.endswith('/measurements'):
+            try:
+                b = cloud_to_measurements(m.msg, ctx.tb(stamp_ns(m.msg.header.stamp)))
+            except MeasurementError:
+                continue
+            pipe.add_measurements(b.station_id, b.fields, b.time, b.target_id, b.values, b.sigmas)
+        elif topic.startswith('stations/') and topic.endswith('/state'):
+            try:
+                s = odometry_to_station_state(m.msg, ctx.tb(stamp_ns(m.msg.header.stamp)))
+            except ValueError:
+                continue
+            pipe.add_pose(s.station_id, s.time, s.position, s.velocity, s.rotation, s.moving)
+    return pipe.flush()
+
+
+def _truth_velocity(tr: TargetStates, t: np.ndarray) -> np.ndarray:
+    from scipy.interpolate import CubicSpline
+
+    v = CubicSpline(tr.time, tr.velocity, axis=0, extrapolate=False)(t)
+    return np.asarray(v, dtype=np.float64)
+
+
+def _evaluate(
+    ctx: BagContext, tid: int, t: np.ndarray, x: np.ndarray, cov: np.ndarray
+) -> dict[str, dict[str, float]]:
+    """Errors of a stitched trajectory against the bag's truth, outside and inside gaps."""
+    tr = ctx.truth[tid]
+    ep = x[:, :3] - hermite_states(tr.time, tr.position, tr.velocity, t)
+    ev = x[:, 3:] - _truth_velocity(tr, t)
+    ok = np.all(np.isfinite(ep), axis=1) & np.all(np.isfinite(ev), axis=1)
+    gap = ctx.in_gap(t)
+    out: dict[str, dict[str, float]] = {}
+    for where, sel in (('outside_gaps', ok & ~gap), ('inside_gaps', ok & gap)):
+        if not np.any(sel):
+            continue
+        npos = np.linalg.norm(ep[sel], axis=1)
+        nvel = np.linalg.norm(ev[sel], axis=1)
+        e6 = np.hstack([ep[sel], ev[sel]])
+        out[where] = {
+            'n': float(sel.sum()),
+            'rms_position_m': float(np.sqrt(np.mean(npos**2))),
+            'mean_position_m': float(np.mean(npos)),
+            'max_position_m': float(np.max(npos)),
+            'rms_velocity_m_s': float(np.sqrt(np.mean(nvel**2))),
+            'mean_velocity_m_s': float(np.mean(nvel)),
+            'mean_nees_position': float(np.mean(nees(ep[sel], cov[sel][:, :3, :3]))),
+            'mean_nees_state': float(np.mean(nees(e6, cov[sel]))),
+        }
+    return out
+
+
+def _window_summary(e: Estimate) -> dict[str, object]:
+    return {
+        'start': float(e.t0),
+        'end': float(e.t1),
+        'success': bool(e.success),
+        'message': e.message,
+        'iterations': int(e.iterations),
+        'halvings': int(e.halvings),
+        'chi2_dof': float(e.chi2_dof),
+        'parameters': int(e.n_parameters),
+        'condition': float(e.condition),
+        'knot_time_s': float(e.knot_time),
+        'solve_time_s': float(e.solve_time),
+        'used': {str(k): int(v) for k, v in sorted(e.used.items())},
+        'rejected': {f'{s}/{why}': int(n) for (s, why), n in sorted(e.rejected.items())},
+        'segments': {
+            int(tid): [[float(a), float(b)] for a, b in sol.segments]
+            for tid, sol in sorted(e.targets.items())
+        },
+    }
+
+
+def estimate_bag(
+    bag: str | Path,
+    out: str | Path,
+    est_cfg: EstimatorConfig | None = None,
+    win_cfg: WindowConfig | None = None,
+    progress: bool = True,
+) -> EstimationReport:
+    """Estimate the trajectory of a bag in the estimator node's sliding windows.
+
+    Reads the measurements, station states, ``telemetry/state``, ``triangulation/fixes``
+    and ``truth/state`` of the bag; when it holds neither telemetry nor fixes, its lines of
+    sight are triangulated first (the rough trajectory). The windows are those of the node
+    (:func:`~orbit_tracking.core.windows.solve_windows`). Writes to ``out``:
+
+    * ``trajectory.csv``: the stitched trajectory of the lowest target id (contract
+      columns); with several targets also ``trajectory_target_<id>.csv``;
+    * ``bag/``: ``trajectory/states`` (Odometry per output time; other targets on
+      ``trajectory/target_<id>/states``) and ``estimator/window_states``;
+    * ``summary.yaml``: windows, iterations, chi2, used/rejected rows, and with truth the
+      errors outside and inside the bag's gaps and the mean NEES.
+
+    Raises
+    ------
+    EstimationError
+        No window could be solved.
+    """
+    est_cfg = est_cfg or EstimatorConfig()
+    win_cfg = win_cfg or WindowConfig()
+    ctx = BagContext.from_custom_data(bag)
+    buf, counts, truth_rows = _read_for_estimation(bag, ctx, progress)
+    for tid, rows in truth_rows.items():
+        rows.sort(key=lambda r: r[0])
+        t = np.array([r[0] for r in rows])
+        z = np.zeros((t.size, 3))
+        ctx.truth[tid] = TargetStates(
+            tid, t, np.array([r[1] for r in rows]), np.array([r[2] for r in rows]), z, z
+        )
+    obs = buf.observations()
+    if buf.withheld:
+        counts['no_station_state'] += sum(buf.withheld.values())
+    counts.update(buf.counts)
+    if obs.telemetry:
+        rough = 'telemetry'
+    elif obs.fixes:
+        rough = 'triangulation/fixes of the bag'
+    else:
+        fixes = _triangulated_fixes(bag, ctx, progress)
+        obs = Observations(obs.stations, {}, fix_series(fixes))
+        rough = f'{len(fixes)} fixes triangulated from the bag'
+    tb = ctx.timebase or TimeBase(0)
+    failures: list[tuple[Span, str]] = []
+    bar = tqdm(unit='window', disable=not progress, desc='estimate')
+
+    def on_window(i: int, n: int, span: Span, res: Estimate | OrbitTrackingError) -> None:
+        bar.total = n
+        bar.update(1)
+        if not isinstance(res, Estimate):
+            failures.append((span, f'{type(res).__name__}: {res}'))
+
+    try:
+        estimates = solve_windows(obs, est_cfg, win_cfg, on_window)
+    finally:
+        bar.close()
+    if not estimates:
+        why = '; '.join(f'[{a:.3f}, {b:.3f}]: {w}' for (a, b), w in failures) or 'no data'
+        raise EstimationError(f'{bag}: no window could be solved ({why})')
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    t_lo = min(e.t0 for e in estimates)
+    t_hi = max(e.t1 for e in estimates)
+    grid = output_times(t_lo, t_hi, win_cfg.output_step)
+    targets = sorted({tid for e in estimates for tid in e.targets})
+    main = targets[0]
+    tracks = {tid: stitch(estimates, grid, tid) for tid in targets}
+    files = [out / 'trajectory.csv']
+    write_trajectory_csv(files[0], *tracks[main], tb.ref_ns)
+    if len(targets) > 1:
+        for tid in targets:
+            files.append(out / f'trajectory_target_{tid}.csv')
+            write_trajectory_csv(files[-1], *tracks[tid], tb.ref_ns)
+    frame = ctx.world_frame or 'earth'
+    msgs: list[tuple[int, str, object]] = []
+    for tid, (tt, x, cov) in tracks.items():
+        topic = 'trajectory/states' if tid == main else f'trajectory/target_{tid}/states'
+        for i in range(tt.size):
+            msg = target_state_to_odometry(
+                tid, frame, tt[i], x[i, :3], x[i, 3:], cov[i, :3, :3], cov[i, 3:, 3:], tb
+            )
+            if tid == main:
+                msg.child_frame_id = 'target'
+            msgs.append((tb.to_ns(tt[i]), topic, msg))
+    for e in estimates:
+        ts, ids, xs, cs = [], [], [], []
+        for tid, sol in sorted(e.targets.items()):
+            t = output_times(sol.t0, sol.t1, win_cfg.output_step)
+            x, c = sol.states(t)
+            ts.append(t)
+            ids.append(np.full(t.size, tid, dtype=np.uint32))
+            xs.append(x)
+            cs.append(c)
+        msg = window_states_to_cloud(
+            frame,
+            e.t0,
+            np.concatenate(ts),
+            np.concatenate(ids),
+            np.vstack(xs),
+            np.concatenate(cs),
+            tb,
+        )
+        msgs.append((tb.to_ns(e.t1), 'estimator/window_states', msg))
+    bag_out = out / 'bag'
+    if bag_out.exists():
+        import shutil
+
+        shutil.rmtree(bag_out)
+    msgs.sort(key=lambda r: r[0])
+    with BagWriter(bag_out) as w:
+        for t_ns, topic, msg in msgs:
+            w.write(topic, msg, t_ns, qos.STATE_STREAM)
+    files.append(bag_out)
+    t_main, x_main, c_main = tracks[main]
+    report = EstimationReport(
+        estimates, failures, main, t_main, x_main, c_main, counts, ctx, rough, files
+    )
+    for tid, (tt, x, cov) in tracks.items():
+        if tid in ctx.truth and tt.size:
+            ev = _evaluate(ctx, tid, tt, x, cov)
+            if ev:
+                report.evaluation[tid] = ev
+    summary = {
+        'bag': str(bag),
+        'scenario': ctx.scenario,
+        'rough_trajectory': rough,
+        'config': {
+            'window_length': win_cfg.length,
+            'window_overlap': win_cfg.overlap,
+            'output_step': win_cfg.output_step,
+            'knot_method': est_cfg.knot_method,
+            'use_telemetry': est_cfg.use_telemetry,
+        },
+        'counts': {k: int(v) for k, v in sorted(counts.items())},
+        'totals': {
+            'windows': len(estimates) + len(failures),
+            'converged': int(sum(e.success for e in estimates)),
+            'failed': len(failures),
+            'iterations': int(sum(e.iterations for e in estimates)),
+            'output_states': int(t_main.size),
+        },
+        'windows': sorted(
+            [_window_summary(e) for e in estimates]
+            + [
+                {'start': float(a), 'end': float(b), 'success': False, 'error': why}
+                for (a, b), why in failures
+            ],
+            key=lambda w: float(w['start']),  # type: ignore[arg-type]
+        ),
+        'evaluation': report.evaluation,
     }
     (out / 'summary.yaml').write_text(yaml.safe_dump(summary, sort_keys=False))
     files.append(out / 'summary.yaml')

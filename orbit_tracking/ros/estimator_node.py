@@ -1,0 +1,603 @@
+"""``estimator``: sliding-window trajectory estimation from the raw measurements.
+
+Subscribes to ``stations/<id>/measurements`` and ``stations/<id>/state`` of the stations in
+its ``stations`` parameter (or of every station that appears), to ``telemetry/state`` and to
+``triangulation/fixes`` (the rough trajectory when there is no telemetry). It buffers them
+by stamp and solves a window of ``window_length`` seconds once the newest stamp is
+``latency`` seconds past the window's end, on the ``~/solve`` service (``std_srvs/Trigger``:
+solve what is buffered now), and when no measurement has arrived for ``flush_after`` wall
+seconds (end of the stream). Consecutive windows overlap by ``window_overlap`` seconds and
+each starts from the previous solution.
+
+Publishes each window's fitted states with covariance on ``estimator/window_states``
+(``sensor_msgs/PointCloud2``, internal: see docs/CONTRACT.md) and ``/diagnostics``.
+
+Example::
+
+    ros2 run orbit_tracking estimator --ros-args -p window_length:=60.0 -p latency:=2.0
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import time
+import traceback
+from collections import Counter
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from nav_msgs.msg import Odometry
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import PointCloud2
+from std_srvs.srv import Trigger
+
+from orbit_tracking.core.buffer import ObservationBuffer
+from orbit_tracking.core.errors import MeasurementError, OrbitTrackingError
+from orbit_tracking.core.estimator import (
+    KNOT_METHODS,
+    Estimate,
+    EstimatorConfig,
+    TargetSolution,
+    estimate,
+)
+from orbit_tracking.core.fixes import format_stamp
+from orbit_tracking.core.knots import KnotConfig
+from orbit_tracking.core.windows import Span, WindowConfig, WindowScheduler, output_times
+from orbit_tracking.ros import qos
+from orbit_tracking.ros.conversions import (
+    TimeBase,
+    cloud_to_measurements,
+    diagnostic_array,
+    diagnostic_status,
+    msg_to_fix,
+    odometry_to_station_state,
+    odometry_to_target_state,
+    stamp_ns,
+    window_states_to_cloud,
+)
+from orbit_tracking.ros.parameters import declare
+from orbit_tracking.ros.runner import run_node
+
+__all__ = ['EstimatorNode', 'main']
+
+_STATION_TOPIC = re.compile(r'^/stations/([A-Za-z][A-Za-z0-9_]*)/measurements$')
+
+# every input stream is read keep-all and reliable, so nothing is overwritten unseen
+_STREAM_SUB = qos.MEASUREMENTS_SUB
+
+
+def _segments(flat: list[float]) -> tuple[tuple[float, float], ...]:
+    """``[a0, b0, a1, b1, ...]`` as pairs; the core config checks ``b > a``."""
+    if len(flat) % 2:
+        raise ValueError(
+            f'segments must be a flat list of start, end pairs; got {len(flat)} numbers'
+        )
+    return tuple((float(flat[i]), float(flat[i + 1])) for i in range(0, len(flat), 2))
+
+
+class EstimatorNode(Node):
+    def __init__(self) -> None:
+        super().__init__('estimator')
+        self.station_filter = [
+            s
+            for s in declare(
+                self,
+                'stations',
+                [''],
+                'Station ids to use; [""] uses every station that appears.',
+                read_only=True,
+            )
+            if s
+        ]
+        win = WindowConfig(
+            length=declare(
+                self,
+                'window_length',
+                60.0,
+                'Length of one estimation window [s of stamps].',
+                read_only=True,
+                min_value=1.0,
+                max_value=3600.0,
+            ),
+            overlap=declare(
+                self,
+                'window_overlap',
+                20.0,
+                'Seconds shared by consecutive windows (at most half the length); the output '
+                'hands over from one window to the next across the middle half of it.',
+                read_only=True,
+                min_value=0.0,
+                max_value=1800.0,
+            ),
+            latency=declare(
+                self,
+                'latency',
+                2.0,
+                'Data seconds to wait past a window end before solving it (late and '
+                'out-of-order measurements).',
+                read_only=True,
+                min_value=0.0,
+                max_value=600.0,
+            ),
+            output_step=declare(
+                self,
+                'output_step',
+                0.1,
+                'Spacing of the published states [s]; they fall on multiples of it.',
+                read_only=True,
+                min_value=0.001,
+                max_value=60.0,
+            ),
+        )
+        knots = KnotConfig(
+            degree=declare(
+                self,
+                'degree',
+                4,
+                'Spline degree (seed 000: 4).',
+                read_only=True,
+                min_value=2,
+                max_value=7,
+            ),
+            base_spacing=declare(
+                self,
+                'base_spacing',
+                1.0,
+                'Initial knot spacing outside incomplete segments [s].',
+                read_only=True,
+                min_value=0.01,
+                max_value=60.0,
+            ),
+            gap_spacing=declare(
+                self,
+                'gap_spacing',
+                0.2,
+                'Initial knot spacing inside incomplete segments [s].',
+                read_only=True,
+                min_value=0.01,
+                max_value=60.0,
+            ),
+            delta_position=declare(
+                self,
+                'delta_position',
+                0.1,
+                'Sparse knot selection: position tolerance delta1 [m].',
+                read_only=True,
+                min_value=1e-6,
+                max_value=1e4,
+            ),
+            delta_velocity=declare(
+                self,
+                'delta_velocity',
+                0.05,
+                'Sparse knot selection: velocity tolerance delta2 [m/s].',
+                read_only=True,
+                min_value=1e-6,
+                max_value=1e3,
+            ),
+            solver=declare(
+                self,
+                'solver',
+                'HIGHS',
+                'cvxpy solver of the knot selection: HIGHS, CLARABEL, ECOS or SCS.',
+                read_only=True,
+            ),
+            sparse=declare(
+                self,
+                'sparse',
+                True,
+                'Run the sparse (l1) knot selection; false keeps the densified knots.',
+                read_only=True,
+            ),
+        )
+        knot_method = declare(
+            self,
+            'knot_method',
+            'sparse',
+            f'Knot placement: one of {", ".join(KNOT_METHODS)}.',
+            read_only=True,
+        )
+        self.time_reference = declare(
+            self,
+            'time_reference',
+            0.0,
+            'Stamp [s] of internal time 0; 0 = the whole second of the first stamp received.',
+            read_only=True,
+            min_value=0.0,
+        )
+        segments = _segments(
+            self._declare_double_array(
+                'segments',
+                'Declared incomplete segments as a flat list start0, end0, start1, ... in '
+                'seconds after time_reference (added to the detected ones).',
+            )
+        )
+        if segments and self.time_reference <= 0.0:
+            raise ValueError('segments are given relative to time_reference; set it (> 0)')
+        self.est_cfg = EstimatorConfig(
+            knots=knots,
+            knot_method=knot_method,
+            use_telemetry=declare(
+                self,
+                'use_telemetry',
+                False,
+                'Fuse telemetry as measurements (with its own error model); it is the rough '
+                'trajectory for the knots either way. Off by default: the fused covariance '
+                'is still optimistic.',
+                read_only=True,
+            ),
+            gate_sigma=declare(
+                self,
+                'gate_sigma',
+                5.0,
+                'Reject measurement rows whose whitened residual exceeds this; 0 = off.',
+                read_only=True,
+                min_value=0.0,
+                max_value=1e6,
+            ),
+            segments=segments,
+        )
+        self.flush_after = declare(
+            self,
+            'flush_after',
+            2.0,
+            'Wall seconds without new measurements after which what is buffered is solved '
+            '(end of the stream).',
+            read_only=True,
+            min_value=0.1,
+            max_value=3600.0,
+        )
+        self.target_id = declare(
+            self,
+            'target_id',
+            -1,
+            'Target to estimate; -1 = every target. Fixes on triangulation/fixes are taken '
+            'as this target (0 if -1).',
+            read_only=True,
+            min_value=-1,
+            max_value=2**31 - 1,
+        )
+        self.win_cfg = win
+        self.scheduler = WindowScheduler(win)
+        self.buffer = ObservationBuffer()
+        self.previous: dict[int, TargetSolution] = {}
+        self.timebase: TimeBase | None = (
+            TimeBase.from_seconds(self.time_reference) if self.time_reference > 0.0 else None
+        )
+        self.world_frame = ''
+        self.counts: Counter[str] = Counter()
+        self.last: dict[str, object] = {}
+        self.last_ok = True
+        self.last_data = time.monotonic()
+        self.flushed = True
+        self.subs: dict[str, object] = {}
+        self.state_subs: dict[str, object] = {}
+        self.window_pub = self.create_publisher(
+            PointCloud2, 'estimator/window_states', qos.STATE_STREAM
+        )
+        self.diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', qos.DIAGNOSTICS)
+        self.create_subscription(Odometry, 'telemetry/state', self._on_telemetry, _STREAM_SUB)
+        self.create_subscription(
+            PoseWithCovarianceStamped, 'triangulation/fixes', self._on_fix, _STREAM_SUB
+        )
+        self.create_service(Trigger, '~/solve', self._on_solve)
+        for sid in self.station_filter:
+            self._subscribe(sid)
+        self.create_timer(0.5, self._discover)
+        self._discover()
+        self.create_timer(0.2, self._tick)
+        self.create_timer(1.0, self._publish_diagnostics)
+        self.get_logger().info(
+            f'estimating in {win.length:g} s windows overlapping {win.overlap:g} s '
+            f'(latency {win.latency:g} s, knots {knot_method}) from '
+            + (
+                f'stations {self.station_filter}'
+                if self.station_filter
+                else 'every station that appears'
+            )
+        )
+
+    def _declare_double_array(self, name: str, description: str) -> list[float]:
+        """A read-only double-array parameter whose default is the empty list (which has
+        no type of its own, so it is declared by type and read with a fallback)."""
+        desc = ParameterDescriptor(name=name, description=description, read_only=True)
+        self.declare_parameter(name, Parameter.Type.DOUBLE_ARRAY, desc)
+        empty = Parameter(name, Parameter.Type.DOUBLE_ARRAY, [])
+        return [float(v) for v in self.get_parameter_or(name, empty).value]
+
+    # -- subscriptions -------------------------------------------------------------
+    def _discover(self) -> None:
+        """Subscribe to stations as their topics appear (all, or those listed), and to each
+        station's state once its publisher is known, with a matching durability."""
+        ns = self.get_namespace().rstrip('/')
+        if not self.station_filter:
+            for topic, _types in self.get_topic_names_and_types():
+                m = _STATION_TOPIC.match(topic[len(ns) :]) if topic.startswith(ns + '/') else None
+                if m and m.group(1) not in self.subs:
+                    self._subscribe(m.group(1))
+        for sid in self.subs:
+            if sid in self.state_subs:
+                continue
+            topic = f'{ns}/stations/{sid}/state'
+            profile = qos.matching_reader(self.get_publishers_info_by_topic(topic))
+            if profile is not None:
+                self.state_subs[sid] = self.create_subscription(
+                    Odometry, topic, lambda m, s=sid: self._on_state(m, s), profile
+                )
+
+    def _subscribe(self, sid: str) -> None:
+        self.subs[sid] = self.create_subscription(
+            PointCloud2,
+            f'stations/{sid}/measurements',
+            lambda m, s=sid: self._on_measurements(m, s),
+            _STREAM_SUB,
+        )
+        self.get_logger().info(f'subscribed to station {sid}')
+
+    def _timebase(self, stamp_ns_: int) -> TimeBase:
+        if self.timebase is None:
+            self.timebase = TimeBase.whole_second_of(stamp_ns_)
+        return self.timebase
+
+    # -- callbacks -----------------------------------------------------------------
+    def _on_state(self, msg: Odometry, sid: str) -> None:
+        tb = self._timebase(stamp_ns(msg.header.stamp))
+        try:
+            st = odometry_to_station_state(msg, tb)
+        except ValueError as exc:
+            self._reject('invalid_state', f'station state rejected: {exc}')
+            return
+        if st.station_id != sid:
+            self._reject(
+                'station_mismatch',
+                f'state on stations/{sid}/state names station {st.station_id!r}; ignored',
+            )
+            return
+        if self.world_frame and msg.header.frame_id != self.world_frame:
+            self._reject(
+                'frame_mismatch',
+                f'station {sid} state in frame {msg.header.frame_id!r}, '
+                f'expected {self.world_frame!r}',
+            )
+            return
+        self.world_frame = msg.header.frame_id
+        self.buffer.add_pose(sid, st.time, st.position, st.velocity, st.rotation, st.moving)
+
+    def _on_measurements(self, msg: PointCloud2, sid: str) -> None:
+        tb = self._timebase(stamp_ns(msg.header.stamp))
+        try:
+            batch = cloud_to_measurements(msg, tb)
+        except MeasurementError as exc:
+            self._reject('invalid_messages', f'measurement message rejected: {exc}')
+            return
+        if batch.rejected:
+            self.counts['rejected_points'] += batch.rejected
+        if batch.station_id != sid:
+            self._reject(
+                'station_mismatch',
+                f'message on stations/{sid}/measurements has frame_id {batch.station_id!r}; '
+                'ignored',
+            )
+            return
+        if self.target_id >= 0:
+            keep = batch.target_id == self.target_id
+            if not np.all(keep):
+                self.counts['other_target'] += int((~keep).sum())
+        else:
+            keep = np.ones(batch.time.size, dtype=bool)
+        self.buffer.add_measurements(
+            sid,
+            batch.fields,
+            batch.time[keep],
+            batch.target_id[keep],
+            batch.values[keep],
+            batch.sigmas[keep],
+        )
+        self.last_data = time.monotonic()
+        self.flushed = False
+
+    def _on_telemetry(self, msg: Odometry) -> None:
+        tb = self._timebase(stamp_ns(msg.header.stamp))
+        try:
+            s = odometry_to_target_state(msg, tb)
+            if self.target_id >= 0 and s.target_id != self.target_id:
+                return
+            self.buffer.add_telemetry(
+                s.target_id,
+                s.time,
+                s.position,
+                s.velocity,
+                # an unfilled (0 or -1) variance gives sigma 0, which the buffer rejects
+                np.sqrt(np.clip(np.diag(s.position_cov), 0.0, None)),
+                np.sqrt(np.clip(np.diag(s.velocity_cov), 0.0, None)),
+            )
+        except ValueError as exc:
+            self._reject('invalid_telemetry', f'telemetry rejected: {exc}')
+
+    def _on_fix(self, msg: PoseWithCovarianceStamped) -> None:
+        tb = self._timebase(stamp_ns(msg.header.stamp))
+        t, p, c = msg_to_fix(msg, tb)
+        try:
+            self.buffer.add_fix(max(self.target_id, 0), t, p, c)
+        except ValueError as exc:
+            self._reject('invalid_fix', f'fix rejected: {exc}')
+
+    def _on_solve(self, _req: Trigger.Request, resp: Trigger.Response) -> Trigger.Response:
+        spans = self._solve_due(final=True)
+        solved = [s for s, ok in spans if ok]
+        resp.success = bool(solved)
+        if not spans:
+            resp.message = 'nothing new to solve since the last window'
+        else:
+            resp.message = ', '.join(
+                f'[{a:.3f}, {b:.3f}] {"solved" if ok else "failed"}' for (a, b), ok in spans
+            )
+        return resp
+
+    # -- windows -------------------------------------------------------------------
+    def _tick(self) -> None:
+        if self._solve_due(final=False):
+            # messages waited in the queues while we solved: that was not silence
+            self.last_data = time.monotonic()
+        if not self.flushed and time.monotonic() - self.last_data >= self.flush_after:
+            self.flushed = True
+            spans = self._solve_due(final=True)
+            if spans:
+                self.get_logger().info(
+                    f'no measurements for {self.flush_after:g} s: solved {len(spans)} '
+                    'window(s) up to the newest stamp'
+                )
+
+    def _solve_due(self, final: bool) -> list[tuple[Span, bool]]:
+        """Solve every window that is due (all there is with ``final``)."""
+        out: list[tuple[Span, bool]] = []
+        if self.timebase is None:
+            return out
+        latest = self.buffer.latest_time()
+        while True:
+            start = -math.inf if self.scheduler.next_t0 is None else self.scheduler.next_t0
+            first = self.buffer.first_time(after=start)
+            span = self.scheduler.next_window(first, latest, final)
+            if span is None:
+                break
+            out.append((span, self._solve(span, self.timebase)))
+            self.buffer.prune(self.scheduler.keep_from)
+        return out
+
+    def _solve(self, span: Span, tb: TimeBase) -> bool:
+        t0, t1 = span
+        wall = time.monotonic()
+        obs = self.buffer.observations(t0, t1)
+        withheld = Counter(self.buffer.withheld)
+        ids = None if self.target_id < 0 else [self.target_id]
+        try:
+            est = estimate(obs, t0, t1, self.est_cfg, ids, self.previous or None)
+            self._publish_window(est, tb)
+        except OrbitTrackingError as exc:
+            return self._failed(span, wall, f'{type(exc).__name__}: {exc}', withheld)
+        except Exception as exc:  # a bug in one window must not take the node down
+            self.get_logger().error(traceback.format_exc())
+            return self._failed(
+                span, wall, f'internal error {type(exc).__name__}: {exc}', withheld
+            )
+        dt = time.monotonic() - wall
+        self.previous = dict(est.targets)
+        self.counts['windows_solved'] += 1
+        self._remember(span, est, dt, withheld)
+        used = sum(v for k, v in est.used.items() if not k.startswith('telemetry_'))
+        rejected = sum(est.rejected.values())
+        log = self.get_logger().info if est.success else self.get_logger().warning
+        log(
+            f'window [{t0:.2f}, {t1:.2f}] s (stamps {tb.to_ns(t0) * 1e-9:.2f}-'
+            f'{tb.to_ns(t1) * 1e-9:.2f}): {est.message}; {est.iterations} GN iterations, '
+            f'chi2/dof {est.chi2_dof:.3f}, {used} measured values used, {rejected} rejected'
+            + (f', {sum(withheld.values())} rows without station state' if withheld else '')
+            + f', {est.n_parameters} parameters; solved in {dt:.2f} s '
+            f'(knots {est.knot_time:.2f} s, Gauss-Newton {est.solve_time:.2f} s)'
+        )
+        return True
+
+    def _failed(self, span: Span, wall: float, reason: str, withheld: Counter[str]) -> bool:
+        self.counts['windows_failed'] += 1
+        self.last_ok = False
+        self.last = {
+            'last_window_start': span[0],
+            'last_window_end': span[1],
+            'last_window_status': f'failed: {reason}',
+            'last_solve_wall_s': time.monotonic() - wall,
+            **{f'withheld_no_station_state_{s}': n for s, n in sorted(withheld.items())},
+        }
+        self.get_logger().error(
+            f'window [{span[0]:.2f}, {span[1]:.2f}] s failed ({reason}); '
+            f'{self.counts["windows_failed"]} failed so far'
+        )
+        return False
+
+    def _remember(self, span: Span, est: Estimate, dt: float, withheld: Counter[str]) -> None:
+        self.last_ok = est.success
+        self.last = {
+            'last_window_start': span[0],
+            'last_window_end': span[1],
+            'last_window_status': est.message,
+            'last_iterations': est.iterations,
+            'last_halvings': est.halvings,
+            'last_chi2_dof': est.chi2_dof,
+            'last_condition': est.condition,
+            'last_parameters': est.n_parameters,
+            'last_solve_wall_s': dt,
+            'last_knot_time_s': est.knot_time,
+            'last_gauss_newton_time_s': est.solve_time,
+            **{f'used_{s}': n for s, n in sorted(est.used.items())},
+            **{f'rejected_{s}_{why}': n for (s, why), n in sorted(est.rejected.items())},
+            **{f'withheld_no_station_state_{s}': n for s, n in sorted(withheld.items())},
+        }
+
+    def _publish_window(self, est: Estimate, tb: TimeBase) -> None:
+        times, tids, states, covs = [], [], [], []
+        for tid, sol in sorted(est.targets.items()):
+            t = output_times(max(est.t0, sol.t0), min(est.t1, sol.t1), self.win_cfg.output_step)
+            if t.size == 0:
+                continue
+            x, c = sol.states(t)
+            times.append(t)
+            tids.append(np.full(t.size, tid, dtype=np.uint32))
+            states.append(x)
+            covs.append(c)
+        if not times:
+            raise OrbitTrackingError('window holds no output time')
+        self.window_pub.publish(
+            window_states_to_cloud(
+                self.world_frame or 'earth',
+                est.t0,
+                np.concatenate(times),
+                np.concatenate(tids),
+                np.vstack(states),
+                np.concatenate(covs),
+                tb,
+            )
+        )
+
+    # -- diagnostics ---------------------------------------------------------------
+    def _reject(self, key: str, text: str) -> None:
+        self.counts[key] += 1
+        self.get_logger().warning(f'{text} ({self.counts[key]} so far)', throttle_duration_sec=5.0)
+
+    def _publish_diagnostics(self) -> None:
+        counts = Counter(self.buffer.counts)
+        counts.update(self.counts)
+        solved, failed = counts.get('windows_solved', 0), counts.get('windows_failed', 0)
+        bad = counts.get('invalid_messages', 0) + counts.get('invalid_state', 0)
+        level = DiagnosticStatus.OK if self.last_ok and not bad else DiagnosticStatus.WARN
+        values: dict[str, object] = {
+            'windows_solved': solved,
+            'windows_failed': failed,
+            **{k: v for k, v in sorted(counts.items()) if not k.startswith('windows_')},
+            **self.last,
+            'newest_data_time_s': self.buffer.latest_time(),
+            'time_reference_s': ''
+            if self.timebase is None
+            else format_stamp(self.timebase.ref_ns, 0.0),
+            **{f'buffer_{k}': v for k, v in self.buffer.sizes().items()},
+            'stations': ' '.join(sorted(self.subs)),
+            'stations_without_state': ' '.join(self.buffer.stations_without_pose()),
+        }
+        status = diagnostic_status(
+            'estimator: windows',
+            level,
+            f'{solved} windows solved, {failed} failed'
+            + (f', {bad} invalid messages' if bad else ''),
+            values,
+        )
+        self.diag_pub.publish(diagnostic_array(self.get_clock().now().to_msg(), [status]))
+
+
+def main(args: list[str] | None = None) -> None:
+    run_node(EstimatorNode, args)
+
+
+if __name__ == '__main__':
+    main()
