@@ -174,8 +174,19 @@ def _evaluate(
     pool.nees.extend(nees(e[::stride, :3], cov[::stride, :3, :3]))
 
 
-def _run(method: Method, obs: Observations, sc: Scenario) -> tuple[Estimate, float]:
+def _run(
+    method: Method, obs: Observations, sc: Scenario
+) -> tuple[Estimate, float, _Stitched | None]:
     t0, t1 = sc.t_start, sc.t_end
+    if method.windows:
+        from orbit_tracking.core.windows import WindowConfig, solve_windows
+
+        start = time.perf_counter()
+        ests = solve_windows(obs, method.config, WindowConfig(), target_ids=[sc.target_ids[0]])
+        wall = time.perf_counter() - start
+        if not ests:
+            raise OrbitTrackingError('no window could be solved')
+        return ests[-1], wall, _Stitched(ests, sc.target_ids[0])
     if method.polynomial_over_gap and sc.gaps:
         a, b = sc.gaps[0]
         t0, t1 = max(t0, a - POLY_MARGIN_S), min(t1, b + POLY_MARGIN_S)
