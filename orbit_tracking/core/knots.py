@@ -493,7 +493,8 @@ def select_knots(
             prob.solve(solver=solver, highs_options={'solver': 'ipm'})  # type: ignore[no-untyped-call]
         else:
             prob.solve(solver=solver)  # type: ignore[no-untyped-call]
-    except cp.error.SolverError as exc:
+    except (cp.error.SolverError, ValueError) as exc:
+        # cvxpy raises ValueError when the solver ends with an unknown status
         installed = cp.installed_solvers()  # type: ignore[no-untyped-call]
         raise KnotSelectionError(
             f'knot selection: solver {solver} failed ({exc}); installed: {installed}'
