@@ -20,7 +20,6 @@ Example::
 from __future__ import annotations
 
 import math
-import re
 import time
 import traceback
 from collections import Counter
@@ -29,8 +28,6 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
-from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
@@ -49,25 +46,24 @@ from orbit_tracking.core.knots import KnotConfig
 from orbit_tracking.core.windows import Span, WindowConfig, WindowScheduler, output_times
 from orbit_tracking.ros import qos
 from orbit_tracking.ros.conversions import (
+    StationStateSample,
     TimeBase,
     cloud_to_measurements,
     diagnostic_array,
     diagnostic_status,
     msg_to_fix,
-    odometry_to_station_state,
     odometry_to_target_state,
     stamp_ns,
     window_states_to_cloud,
 )
 from orbit_tracking.ros.parameters import declare
 from orbit_tracking.ros.runner import run_node
+from orbit_tracking.ros.station_inputs import StationInputs
 
 __all__ = ['EstimatorNode', 'main']
 
-_STATION_TOPIC = re.compile(r'^/stations/([A-Za-z][A-Za-z0-9_]*)/measurements$')
 
 # every input stream is read keep-all and reliable, so nothing is overwritten unseen
-_STREAM_SUB = qos.MEASUREMENTS_SUB
 
 
 def _segments(flat: list[float]) -> tuple[tuple[float, float], ...]:
@@ -79,10 +75,10 @@ def _segments(flat: list[float]) -> tuple[tuple[float, float], ...]:
     return tuple((float(flat[i]), float(flat[i + 1])) for i in range(0, len(flat), 2))
 
 
-class EstimatorNode(Node):
+class EstimatorNode(StationInputs):
     def __init__(self) -> None:
         super().__init__('estimator')
-        self.station_filter = [
+        station_filter = [
             s
             for s in declare(
                 self,
@@ -210,10 +206,14 @@ class EstimatorNode(Node):
             min_value=0.0,
         )
         segments = _segments(
-            self._declare_double_array(
+            declare(
+                self,
                 'segments',
+                [],
                 'Declared incomplete segments as a flat list start0, end0, start1, ... in '
                 'seconds after time_reference (added to the detected ones).',
+                read_only=True,
+                param_type=Parameter.Type.DOUBLE_ARRAY,
             )
         )
         if segments and self.time_reference <= 0.0:
@@ -265,106 +265,32 @@ class EstimatorNode(Node):
         self.scheduler = WindowScheduler(win)
         self.buffer = ObservationBuffer()
         self.previous: dict[int, TargetSolution] = {}
-        self.timebase: TimeBase | None = (
-            TimeBase.from_seconds(self.time_reference) if self.time_reference > 0.0 else None
-        )
-        self.world_frame = ''
         self.counts: Counter[str] = Counter()
         self.last: dict[str, object] = {}
         self.last_ok = True
         self.last_data = time.monotonic()
         self.flushed = True
-        self.subs: dict[str, object] = {}
-        self.state_subs: dict[str, object] = {}
         self.window_pub = self.create_publisher(
             PointCloud2, 'estimator/window_states', qos.STATE_STREAM
         )
         self.diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', qos.DIAGNOSTICS)
-        self.create_subscription(Odometry, 'telemetry/state', self._on_telemetry, _STREAM_SUB)
         self.create_subscription(
-            PoseWithCovarianceStamped, 'triangulation/fixes', self._on_fix, _STREAM_SUB
+            Odometry, 'telemetry/state', self._on_telemetry, qos.MEASUREMENTS_SUB
+        )
+        self.create_subscription(
+            PoseWithCovarianceStamped, 'triangulation/fixes', self._on_fix, qos.MEASUREMENTS_SUB
         )
         self.create_service(Trigger, '~/solve', self._on_solve)
-        for sid in self.station_filter:
-            self._subscribe(sid)
-        self.create_timer(0.5, self._discover)
-        self._discover()
+        self._start_station_inputs(station_filter, self.time_reference)
         self.create_timer(0.2, self._tick)
         self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info(
             f'estimating in {win.length:g} s windows overlapping {win.overlap:g} s '
-            f'(latency {win.latency:g} s, knots {knot_method}) from '
-            + (
-                f'stations {self.station_filter}'
-                if self.station_filter
-                else 'every station that appears'
-            )
+            f'(latency {win.latency:g} s, knots {knot_method}) from {self._stations_text()}'
         )
-
-    def _declare_double_array(self, name: str, description: str) -> list[float]:
-        """A read-only double-array parameter whose default is the empty list (which has
-        no type of its own, so it is declared by type and read with a fallback)."""
-        desc = ParameterDescriptor(name=name, description=description, read_only=True)
-        self.declare_parameter(name, Parameter.Type.DOUBLE_ARRAY, desc)
-        empty = Parameter(name, Parameter.Type.DOUBLE_ARRAY, [])
-        return [float(v) for v in self.get_parameter_or(name, empty).value]
-
-    # -- subscriptions -------------------------------------------------------------
-    def _discover(self) -> None:
-        """Subscribe to stations as their topics appear (all, or those listed), and to each
-        station's state once its publisher is known, with a matching durability."""
-        ns = self.get_namespace().rstrip('/')
-        if not self.station_filter:
-            for topic, _types in self.get_topic_names_and_types():
-                m = _STATION_TOPIC.match(topic[len(ns) :]) if topic.startswith(ns + '/') else None
-                if m and m.group(1) not in self.subs:
-                    self._subscribe(m.group(1))
-        for sid in self.subs:
-            if sid in self.state_subs:
-                continue
-            topic = f'{ns}/stations/{sid}/state'
-            profile = qos.matching_reader(self.get_publishers_info_by_topic(topic))
-            if profile is not None:
-                self.state_subs[sid] = self.create_subscription(
-                    Odometry, topic, lambda m, s=sid: self._on_state(m, s), profile
-                )
-
-    def _subscribe(self, sid: str) -> None:
-        self.subs[sid] = self.create_subscription(
-            PointCloud2,
-            f'stations/{sid}/measurements',
-            lambda m, s=sid: self._on_measurements(m, s),
-            _STREAM_SUB,
-        )
-        self.get_logger().info(f'subscribed to station {sid}')
-
-    def _timebase(self, stamp_ns_: int) -> TimeBase:
-        if self.timebase is None:
-            self.timebase = TimeBase.whole_second_of(stamp_ns_)
-        return self.timebase
 
     # -- callbacks -----------------------------------------------------------------
-    def _on_state(self, msg: Odometry, sid: str) -> None:
-        tb = self._timebase(stamp_ns(msg.header.stamp))
-        try:
-            st = odometry_to_station_state(msg, tb)
-        except ValueError as exc:
-            self._reject('invalid_state', f'station state rejected: {exc}')
-            return
-        if st.station_id != sid:
-            self._reject(
-                'station_mismatch',
-                f'state on stations/{sid}/state names station {st.station_id!r}; ignored',
-            )
-            return
-        if self.world_frame and msg.header.frame_id != self.world_frame:
-            self._reject(
-                'frame_mismatch',
-                f'station {sid} state in frame {msg.header.frame_id!r}, '
-                f'expected {self.world_frame!r}',
-            )
-            return
-        self.world_frame = msg.header.frame_id
+    def _add_pose(self, sid: str, st: StationStateSample) -> None:
         self.buffer.add_pose(sid, st.time, st.position, st.velocity, st.rotation, st.moving)
 
     def _on_measurements(self, msg: PointCloud2, sid: str) -> None:

@@ -54,7 +54,9 @@ def declare(
                 )
             ]
     if param_type is not None:
+        # declared by type (e.g. an empty-list default has no type of its own); an unset
+        # parameter of that kind cannot be read with get_parameter, so fall back
         node.declare_parameter(name, param_type, desc)
-        value = node.get_parameter(name).value
+        value = node.get_parameter_or(name, Parameter(name, param_type, default)).value
         return default if value is None else value
     return node.declare_parameter(name, default, desc).value

@@ -14,14 +14,11 @@ Example::
 from __future__ import annotations
 
 import math
-import re
 import time
 from collections import Counter
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseWithCovarianceStamped
-from nav_msgs.msg import Odometry
-from rclpy.node import Node
 from rclpy.publisher import Publisher
 from sensor_msgs.msg import PointCloud2
 
@@ -31,26 +28,25 @@ from orbit_tracking.core.fixes import TimedFix, TriangulationPipeline
 from orbit_tracking.core.triangulation import REASONS, Gates
 from orbit_tracking.ros import qos
 from orbit_tracking.ros.conversions import (
+    StationStateSample,
     TimeBase,
     cloud_to_measurements,
     diagnostic_array,
     diagnostic_status,
     fix_to_msg,
-    odometry_to_station_state,
     stamp_ns,
 )
 from orbit_tracking.ros.parameters import declare
 from orbit_tracking.ros.runner import run_node
+from orbit_tracking.ros.station_inputs import StationInputs
 
 __all__ = ['TriangulationNode', 'main']
 
-_STATION_TOPIC = re.compile(r'^/stations/([A-Za-z][A-Za-z0-9_]*)/measurements$')
 
-
-class TriangulationNode(Node):
+class TriangulationNode(StationInputs):
     def __init__(self) -> None:
         super().__init__('triangulation')
-        self.station_filter = [
+        station_filter = [
             s
             for s in declare(
                 self,
@@ -172,11 +168,6 @@ class TriangulationNode(Node):
             ),
             gates,
         )
-        self.timebase: TimeBase | None = (
-            TimeBase.from_seconds(self.time_reference) if self.time_reference > 0.0 else None
-        )
-        self.world_frame = ''
-        self.subs: dict[str, object] = {}
         self.fix_pub = self.create_publisher(
             PoseWithCovarianceStamped, 'triangulation/fixes', qos.STATE_STREAM
         )
@@ -188,78 +179,13 @@ class TriangulationNode(Node):
         self.first_pending: float | None = None
         self.last_data = time.monotonic()
         self.flushed = True
-        self.state_subs: dict[str, object] = {}
-        for sid in self.station_filter:
-            self._subscribe(sid)
-        self.create_timer(0.5, self._discover)
-        self._discover()
+        self._start_station_inputs(station_filter, self.time_reference)
         self.create_timer(1.0, self._publish_diagnostics)
         self.create_timer(0.2, self._flush_if_idle)
-        self.get_logger().info(
-            'triangulating '
-            + (
-                f'stations {self.station_filter}'
-                if self.station_filter
-                else 'every station that appears'
-            )
-        )
-
-    # -- subscriptions -------------------------------------------------------------
-    def _discover(self) -> None:
-        """Subscribe to stations as their topics appear (all, or those listed), and to each
-        station's state once its publisher is known, with a matching durability."""
-        ns = self.get_namespace().rstrip('/')
-        if not self.station_filter:
-            for topic, _types in self.get_topic_names_and_types():
-                m = _STATION_TOPIC.match(topic[len(ns) :]) if topic.startswith(ns + '/') else None
-                if m and m.group(1) not in self.subs:
-                    self._subscribe(m.group(1))
-        for sid in self.subs:
-            if sid in self.state_subs:
-                continue
-            topic = f'{ns}/stations/{sid}/state'
-            profile = qos.matching_reader(self.get_publishers_info_by_topic(topic))
-            if profile is not None:
-                self.state_subs[sid] = self.create_subscription(
-                    Odometry, topic, lambda m, s=sid: self._on_state(m, s), profile
-                )
-
-    def _subscribe(self, sid: str) -> None:
-        self.subs[sid] = self.create_subscription(
-            PointCloud2,
-            f'stations/{sid}/measurements',
-            lambda m, s=sid: self._on_measurements(m, s),
-            qos.MEASUREMENTS_SUB,
-        )
-        self.get_logger().info(f'subscribed to station {sid}')
-
-    def _timebase(self, stamp_ns_: int) -> TimeBase:
-        if self.timebase is None:
-            self.timebase = TimeBase.whole_second_of(stamp_ns_)
-        return self.timebase
+        self.get_logger().info(f'triangulating {self._stations_text()}')
 
     # -- callbacks -----------------------------------------------------------------
-    def _on_state(self, msg: Odometry, sid: str) -> None:
-        tb = self._timebase(stamp_ns(msg.header.stamp))
-        try:
-            st = odometry_to_station_state(msg, tb)
-        except ValueError as exc:
-            self._reject('invalid_state', f'station state rejected: {exc}')
-            return
-        if st.station_id != sid:
-            self._reject(
-                'station_mismatch',
-                f'state on stations/{sid}/state names station {st.station_id!r}; ignored',
-            )
-            return
-        if self.world_frame and msg.header.frame_id != self.world_frame:
-            self._reject(
-                'frame_mismatch',
-                f'station {st.station_id} state in frame {msg.header.frame_id!r}, '
-                f'expected {self.world_frame!r}',
-            )
-            return
-        self.world_frame = msg.header.frame_id
+    def _add_pose(self, sid: str, st: StationStateSample) -> None:
         self.pipeline.add_pose(
             st.station_id, st.time, st.position, st.velocity, st.rotation, st.moving
         )

@@ -1,0 +1,128 @@
+"""Station inputs shared by the processing nodes (triangulation, estimator).
+
+A node that mixes in :class:`StationInputs` subscribes to ``stations/<id>/measurements``
+of the stations it is given (or of every station whose topic appears), and to each
+station's ``stations/<id>/state`` once that topic's publisher is known, with a reader
+durability matched to it (a transient-local reader does not match a volatile writer).
+It validates station states (id and world frame consistent) and owns the node's time
+base and world frame.
+"""
+
+from __future__ import annotations
+
+import re
+from typing import Any
+
+from nav_msgs.msg import Odometry
+from rclpy.node import Node
+from sensor_msgs.msg import PointCloud2
+
+from orbit_tracking.ros import qos
+from orbit_tracking.ros.conversions import (
+    StationStateSample,
+    TimeBase,
+    odometry_to_station_state,
+    stamp_ns,
+)
+
+__all__ = ['StationInputs']
+
+_STATION_TOPIC = re.compile(r'^/stations/([A-Za-z][A-Za-z0-9_]*)/measurements$')
+
+
+class StationInputs(Node):
+    """Mixin base of a node fed by station topics.
+
+    Subclasses implement ``_on_measurements(msg, sid)``, ``_add_pose(sid, state)`` and
+    ``_reject(key, text)``, and call :meth:`_start_station_inputs` from ``__init__``.
+    """
+
+    timebase: TimeBase | None
+    world_frame: str
+    station_filter: list[str]
+    subs: dict[str, Any]
+    state_subs: dict[str, Any]
+
+    def _start_station_inputs(self, station_filter: list[str], time_reference: float) -> None:
+        self.station_filter = station_filter
+        self.timebase = TimeBase.from_seconds(time_reference) if time_reference > 0.0 else None
+        self.world_frame = ''
+        self.subs = {}
+        self.state_subs = {}
+        for sid in station_filter:
+            self._subscribe(sid)
+        self.create_timer(0.5, self._discover)
+        self._discover()
+
+    def _stations_text(self) -> str:
+        return (
+            f'stations {self.station_filter}'
+            if self.station_filter
+            else 'every station that appears'
+        )
+
+    def _discover(self) -> None:
+        """Subscribe to stations as their topics appear (all, or those listed), and to each
+        station's state once its publisher is known, with a matching durability."""
+        ns = self.get_namespace().rstrip('/')
+        if not self.station_filter:
+            for topic, _types in self.get_topic_names_and_types():
+                m = _STATION_TOPIC.match(topic[len(ns) :]) if topic.startswith(ns + '/') else None
+                if m and m.group(1) not in self.subs:
+                    self._subscribe(m.group(1))
+        for sid in self.subs:
+            if sid in self.state_subs:
+                continue
+            topic = f'{ns}/stations/{sid}/state'
+            profile = qos.matching_reader(self.get_publishers_info_by_topic(topic))
+            if profile is not None:
+                self.state_subs[sid] = self.create_subscription(
+                    Odometry, topic, lambda m, s=sid: self._on_state(m, s), profile
+                )
+
+    def _subscribe(self, sid: str) -> None:
+        self.subs[sid] = self.create_subscription(
+            PointCloud2,
+            f'stations/{sid}/measurements',
+            lambda m, s=sid: self._on_measurements(m, s),
+            qos.MEASUREMENTS_SUB,
+        )
+        self.get_logger().info(f'subscribed to station {sid}')
+
+    def _timebase(self, stamp_ns_: int) -> TimeBase:
+        if self.timebase is None:
+            self.timebase = TimeBase.whole_second_of(stamp_ns_)
+        return self.timebase
+
+    def _on_state(self, msg: Odometry, sid: str) -> None:
+        tb = self._timebase(stamp_ns(msg.header.stamp))
+        try:
+            st = odometry_to_station_state(msg, tb)
+        except ValueError as exc:
+            self._reject('invalid_state', f'station state rejected: {exc}')
+            return
+        if st.station_id != sid:
+            self._reject(
+                'station_mismatch',
+                f'state on stations/{sid}/state names station {st.station_id!r}; ignored',
+            )
+            return
+        if self.world_frame and msg.header.frame_id != self.world_frame:
+            self._reject(
+                'frame_mismatch',
+                f'station {sid} state in frame {msg.header.frame_id!r}, '
+                f'expected {self.world_frame!r}',
+            )
+            return
+        self.world_frame = msg.header.frame_id
+        self._add_pose(sid, st)
+
+    # -- implemented by the node ----------------------------------------------------
+    def _on_measurements(self, msg: PointCloud2, sid: str) -> None:
+        raise NotImplementedError
+
+    def _add_pose(self, sid: str, state: StationStateSample) -> None:
+        raise NotImplementedError
+
+    def _reject(self, key: str, text: str) -> None:
+        raise NotImplementedError
