@@ -6,8 +6,10 @@ from __future__ import annotations
 
 import math
 from collections import Counter
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import yaml
@@ -130,6 +132,96 @@ def _independent_stride(period: float, max_dt: float) -> int:
     return max(1, math.ceil(2.0 * max_dt / period - 1e-9))
 
 
+_TARGET_TOPICS = frozenset({'telemetry/state', 'triangulation/fixes', 'truth/state'})
+
+
+@dataclass(frozen=True)
+class _Input:
+    """One decoded input message of a bag."""
+
+    kind: str  # measurements | station_state | telemetry | fix | truth
+    data: Any
+
+
+def _bag_inputs(
+    bag: str | Path, ctx: BagContext, counts: Counter[str], progress: bool, desc: str
+) -> Iterator[_Input]:
+    """Decode the input topics of a bag in log order, as the nodes receive them.
+
+    Undecodable messages and messages whose station id differs from their topic's are
+    counted in ``counts`` (``invalid_messages``, ``invalid_state``, ``station_mismatch``,
+    ``invalid_fix``) and skipped; ``rejected_points`` counts bad points inside good
+    messages. The first station state sets ``ctx.world_frame``.
+    """
+    for m in tqdm(read_bag(bag), unit='msg', disable=not progress, desc=desc):
+        topic = m.topic.lstrip('/')
+        parts = topic.split('/')
+        station = len(parts) == 3 and parts[0] == 'stations'
+        if not station and topic not in _TARGET_TOPICS:
+            continue  # e.g. /clock, /diagnostics, outputs: not inputs, no time base from them
+        tb = ctx.tb(stamp_ns(m.msg.header.stamp))
+        if len(parts) == 3 and parts[0] == 'stations' and parts[2] == 'measurements':
+            try:
+                b = cloud_to_measurements(m.msg, tb)
+            except MeasurementError:
+                counts['invalid_messages'] += 1
+                continue
+            if b.rejected:
+                counts['rejected_points'] += b.rejected
+            if b.station_id != parts[1]:
+                counts['station_mismatch'] += 1
+                continue
+            yield _Input('measurements', b)
+        elif len(parts) == 3 and parts[0] == 'stations' and parts[2] == 'state':
+            try:
+                st = odometry_to_station_state(m.msg, tb)
+            except ValueError:
+                counts['invalid_state'] += 1
+                continue
+            if st.station_id != parts[1]:
+                counts['station_mismatch'] += 1
+                continue
+            ctx.world_frame = ctx.world_frame or m.msg.header.frame_id
+            yield _Input('station_state', st)
+        elif topic == 'telemetry/state':
+            yield _Input('telemetry', odometry_to_target_state(m.msg, tb))
+        elif topic == 'triangulation/fixes':
+            try:
+                yield _Input('fix', msg_to_fix(m.msg, tb))
+            except ValueError:
+                counts['invalid_fix'] += 1
+        elif topic == 'truth/state':
+            yield _Input('truth', odometry_to_target_state(m.msg, tb))
+
+
+def _truth_states(samples: list[Any]) -> dict[int, TargetStates]:
+    """Truth samples (TargetStateSample) gathered per target, in time order."""
+    rows: dict[int, list[Any]] = {}
+    for s in samples:
+        rows.setdefault(s.target_id, []).append(s)
+    out = {}
+    for tid, ss in rows.items():
+        ss.sort(key=lambda s: s.time)
+        t = np.array([s.time for s in ss])
+        z = np.zeros((t.size, 3))
+        out[tid] = TargetStates(
+            tid, t, np.array([s.position for s in ss]), np.array([s.velocity for s in ss]), z, z
+        )
+    return out
+
+
+def _feed_pipeline(pipe: TriangulationPipeline, item: _Input) -> list[TimedFix]:
+    """Give one decoded input to a triangulation pipeline; the fixes it makes ready."""
+    if item.kind == 'measurements':
+        b = item.data
+        pipe.add_measurements(b.station_id, b.fields, b.time, b.target_id, b.values, b.sigmas)
+        return pipe.process()
+    if item.kind == 'station_state':
+        s = item.data
+        pipe.add_pose(s.station_id, s.time, s.position, s.velocity, s.rotation, s.moving)
+    return []
+
+
 def triangulate_bag(
     bag: str | Path,
     out: str | Path,
@@ -147,44 +239,16 @@ def triangulate_bag(
     ctx = BagContext.from_custom_data(bag)
     pipe = TriangulationPipeline(align, gates)
     counts: Counter[str] = Counter()
-    truth_rows: dict[int, list[tuple[float, np.ndarray, np.ndarray]]] = {}
+    truth: list[Any] = []
     fixes: list[TimedFix] = []
-    for m in tqdm(read_bag(bag), unit='msg', disable=not progress, desc='triangulate'):
-        topic = m.topic.lstrip('/')
-        if topic.endswith('/measurements') and topic.startswith('stations/'):
-            tb = ctx.tb(stamp_ns(m.msg.header.stamp))
-            try:
-                b = cloud_to_measurements(m.msg, tb)
-            except MeasurementError:
-                counts['invalid_messages'] += 1
-                continue
-            counts['rejected_points'] += b.rejected
-            pipe.add_measurements(b.station_id, b.fields, b.time, b.target_id, b.values, b.sigmas)
-            fixes.extend(pipe.process())
-        elif topic.endswith('/state') and topic.startswith('stations/'):
-            tb = ctx.tb(stamp_ns(m.msg.header.stamp))
-            try:
-                s = odometry_to_station_state(m.msg, tb)
-            except ValueError:
-                counts['invalid_state'] += 1
-                continue
-            ctx.world_frame = ctx.world_frame or m.msg.header.frame_id
-            pipe.add_pose(s.station_id, s.time, s.position, s.velocity, s.rotation, s.moving)
-        elif topic == 'truth/state':
-            st = odometry_to_target_state(m.msg, ctx.tb(stamp_ns(m.msg.header.stamp)))
-            truth_rows.setdefault(st.target_id, []).append((st.time, st.position, st.velocity))
+    for item in _bag_inputs(bag, ctx, counts, progress, 'triangulate'):
+        if item.kind == 'truth':
+            truth.append(item.data)
+        else:
+            fixes.extend(_feed_pipeline(pipe, item))
     fixes.extend(pipe.flush())
     counts.update(pipe.counts)
-    counts['rejected_points'] = counts.get('rejected_points', 0)
-    if not counts['rejected_points']:
-        del counts['rejected_points']
-    for tid, rows in truth_rows.items():
-        rows.sort(key=lambda r: r[0])
-        t = np.array([r[0] for r in rows])
-        z = np.zeros((t.size, 3))
-        ctx.truth[tid] = TargetStates(
-            tid, t, np.array([r[1] for r in rows]), np.array([r[2] for r in rows]), z, z
-        )
+    ctx.truth.update(_truth_states(truth))
     tb = ctx.timebase or TimeBase(0)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -331,80 +395,48 @@ class EstimationReport:
 
 def _read_for_estimation(
     bag: str | Path, ctx: BagContext, progress: bool
-) -> tuple[ObservationBuffer, Counter[str], dict[int, list[tuple[float, np.ndarray, np.ndarray]]]]:
+) -> tuple[ObservationBuffer, Counter[str]]:
     """Measurements, station states, telemetry and fixes of a bag into a buffer (what the
-    node receives), and the truth rows."""
+    node receives); the truth goes to ``ctx.truth``."""
     buf = ObservationBuffer()
     counts: Counter[str] = Counter()
-    truth_rows: dict[int, list[tuple[float, np.ndarray, np.ndarray]]] = {}
-    for m in tqdm(read_bag(bag), unit='msg', disable=not progress, desc='read bag'):
-        topic = m.topic.lstrip('/')
-        parts = topic.split('/')
-        if len(parts) == 3 and parts[0] == 'stations' and parts[2] == 'measurements':
-            try:
-                b = cloud_to_measurements(m.msg, ctx.tb(stamp_ns(m.msg.header.stamp)))
-            except MeasurementError:
-                counts['invalid_messages'] += 1
-                continue
-            counts['rejected_points'] += b.rejected
-            if b.station_id != parts[1]:
-                counts['station_mismatch'] += 1
-                continue
-            buf.add_measurements(b.station_id, b.fields, b.time, b.target_id, b.values, b.sigmas)
-        elif len(parts) == 3 and parts[0] == 'stations' and parts[2] == 'state':
-            try:
-                st = odometry_to_station_state(m.msg, ctx.tb(stamp_ns(m.msg.header.stamp)))
-            except ValueError:
-                counts['invalid_state'] += 1
-                continue
-            if st.station_id != parts[1]:
-                counts['station_mismatch'] += 1
-                continue
-            ctx.world_frame = ctx.world_frame or m.msg.header.frame_id
-            buf.add_pose(st.station_id, st.time, st.position, st.velocity, st.rotation, st.moving)
-        elif topic == 'telemetry/state':
-            s = odometry_to_target_state(m.msg, ctx.tb(stamp_ns(m.msg.header.stamp)))
+    truth: list[Any] = []
+    for item in _bag_inputs(bag, ctx, counts, progress, 'read bag'):
+        d = item.data
+        if item.kind == 'measurements':
+            buf.add_measurements(d.station_id, d.fields, d.time, d.target_id, d.values, d.sigmas)
+        elif item.kind == 'station_state':
+            buf.add_pose(d.station_id, d.time, d.position, d.velocity, d.rotation, d.moving)
+        elif item.kind == 'telemetry':
             try:
                 buf.add_telemetry(
-                    s.target_id,
-                    s.time,
-                    s.position,
-                    s.velocity,
-                    np.sqrt(np.clip(np.diag(s.position_cov), 0.0, None)),
-                    np.sqrt(np.clip(np.diag(s.velocity_cov), 0.0, None)),
+                    d.target_id,
+                    d.time,
+                    d.position,
+                    d.velocity,
+                    np.sqrt(np.clip(np.diag(d.position_cov), 0.0, None)),
+                    np.sqrt(np.clip(np.diag(d.velocity_cov), 0.0, None)),
                 )
             except ValueError:
                 counts['invalid_telemetry'] += 1
-        elif topic == 'triangulation/fixes':
-            t, p, c = msg_to_fix(m.msg, ctx.tb(stamp_ns(m.msg.header.stamp)))
+        elif item.kind == 'fix':
             try:
-                buf.add_fix(0, t, p, c)
+                buf.add_fix(0, *d)
             except ValueError:
                 counts['invalid_fix'] += 1
-        elif topic == 'truth/state':
-            ts = odometry_to_target_state(m.msg, ctx.tb(stamp_ns(m.msg.header.stamp)))
-            truth_rows.setdefault(ts.target_id, []).append((ts.time, ts.position, ts.velocity))
-    return buf, +counts, truth_rows
+        elif item.kind == 'truth':
+            truth.append(d)
+    ctx.truth.update(_truth_states(truth))
+    return buf, +counts
 
 
 def _triangulated_fixes(bag: str | Path, ctx: BagContext, progress: bool) -> list[TimedFix]:
     """Fixes of the bag's lines of sight (the rough trajectory when the bag has neither
     telemetry nor fixes)."""
     pipe = TriangulationPipeline()
-    for m in tqdm(read_bag(bag), unit='msg', disable=not progress, desc='triangulate'):
-        topic = m.topic.lstrip('/')
-        if topic.startswith('stations/') and topic.endswith('/measurements'):
-            try:
-                b = cloud_to_measurements(m.msg, ctx.tb(stamp_ns(m.msg.header.stamp)))
-            except MeasurementError:
-                continue
-            pipe.add_measurements(b.station_id, b.fields, b.time, b.target_id, b.values, b.sigmas)
-        elif topic.startswith('stations/') and topic.endswith('/state'):
-            try:
-                s = odometry_to_station_state(m.msg, ctx.tb(stamp_ns(m.msg.header.stamp)))
-            except ValueError:
-                continue
-            pipe.add_pose(s.station_id, s.time, s.position, s.velocity, s.rotation, s.moving)
+    ignored: Counter[str] = Counter()  # already counted by the first pass
+    for item in _bag_inputs(bag, ctx, ignored, progress, 'triangulate'):
+        _feed_pipeline(pipe, item)
     return pipe.flush()
 
 
@@ -495,14 +527,7 @@ def estimate_bag(
     est_cfg = est_cfg or EstimatorConfig()
     win_cfg = win_cfg or WindowConfig()
     ctx = BagContext.from_custom_data(bag)
-    buf, counts, truth_rows = _read_for_estimation(bag, ctx, progress)
-    for tid, rows in truth_rows.items():
-        rows.sort(key=lambda r: r[0])
-        t = np.array([r[0] for r in rows])
-        z = np.zeros((t.size, 3))
-        ctx.truth[tid] = TargetStates(
-            tid, t, np.array([r[1] for r in rows]), np.array([r[2] for r in rows]), z, z
-        )
+    buf, counts = _read_for_estimation(bag, ctx, progress)
     obs = buf.observations()
     if buf.withheld:
         counts['no_station_state'] += sum(buf.withheld.values())
