@@ -33,7 +33,7 @@ from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
 from orbit_tracking.core.buffer import ObservationBuffer
-from orbit_tracking.core.errors import MeasurementError, OrbitTrackingError
+from orbit_tracking.core.errors import OrbitTrackingError
 from orbit_tracking.core.estimator import (
     KNOT_METHODS,
     Estimate,
@@ -46,9 +46,9 @@ from orbit_tracking.core.knots import KnotConfig
 from orbit_tracking.core.windows import Span, WindowConfig, WindowScheduler, output_times
 from orbit_tracking.ros import qos
 from orbit_tracking.ros.conversions import (
+    MeasurementBatch,
     StationStateSample,
     TimeBase,
-    cloud_to_measurements,
     diagnostic_array,
     diagnostic_status,
     msg_to_fix,
@@ -293,22 +293,7 @@ class EstimatorNode(StationInputs):
     def _add_pose(self, sid: str, st: StationStateSample) -> None:
         self.buffer.add_pose(sid, st.time, st.position, st.velocity, st.rotation, st.moving)
 
-    def _on_measurements(self, msg: PointCloud2, sid: str) -> None:
-        tb = self._timebase(stamp_ns(msg.header.stamp))
-        try:
-            batch = cloud_to_measurements(msg, tb)
-        except MeasurementError as exc:
-            self._reject('invalid_messages', f'measurement message rejected: {exc}')
-            return
-        if batch.rejected:
-            self.counts['rejected_points'] += batch.rejected
-        if batch.station_id != sid:
-            self._reject(
-                'station_mismatch',
-                f'message on stations/{sid}/measurements has frame_id {batch.station_id!r}; '
-                'ignored',
-            )
-            return
+    def _add_measurements(self, sid: str, batch: MeasurementBatch) -> None:
         if self.target_id >= 0:
             keep = batch.target_id == self.target_id
             if not np.all(keep):

@@ -11,16 +11,20 @@ base and world frame.
 from __future__ import annotations
 
 import re
+from collections import Counter
 from typing import Any
 
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 
+from orbit_tracking.core.errors import MeasurementError
 from orbit_tracking.ros import qos
 from orbit_tracking.ros.conversions import (
+    MeasurementBatch,
     StationStateSample,
     TimeBase,
+    cloud_to_measurements,
     odometry_to_station_state,
     stamp_ns,
 )
@@ -33,8 +37,9 @@ _STATION_TOPIC = re.compile(r'^/stations/([A-Za-z][A-Za-z0-9_]*)/measurements$')
 class StationInputs(Node):
     """Mixin base of a node fed by station topics.
 
-    Subclasses implement ``_on_measurements(msg, sid)``, ``_add_pose(sid, state)`` and
-    ``_reject(key, text)``, and call :meth:`_start_station_inputs` from ``__init__``.
+    Subclasses implement ``_add_measurements(sid, batch)`` (a decoded, validated message),
+    ``_add_pose(sid, state)`` and ``_reject(key, text)``, keep a ``counts`` Counter, and
+    call :meth:`_start_station_inputs` from ``__init__``.
     """
 
     timebase: TimeBase | None
@@ -42,6 +47,7 @@ class StationInputs(Node):
     station_filter: list[str]
     subs: dict[str, Any]
     state_subs: dict[str, Any]
+    counts: Counter[str]
 
     def _start_station_inputs(self, station_filter: list[str], time_reference: float) -> None:
         self.station_filter = station_filter
@@ -117,8 +123,26 @@ class StationInputs(Node):
         self.world_frame = msg.header.frame_id
         self._add_pose(sid, st)
 
-    # -- implemented by the node ----------------------------------------------------
     def _on_measurements(self, msg: PointCloud2, sid: str) -> None:
+        tb = self._timebase(stamp_ns(msg.header.stamp))
+        try:
+            batch = cloud_to_measurements(msg, tb)
+        except MeasurementError as exc:
+            self._reject('invalid_messages', f'measurement message rejected: {exc}')
+            return
+        if batch.rejected:
+            self.counts['rejected_points'] += batch.rejected
+        if batch.station_id != sid:
+            self._reject(
+                'station_mismatch',
+                f'message on stations/{sid}/measurements has frame_id {batch.station_id!r}; '
+                'ignored',
+            )
+            return
+        self._add_measurements(sid, batch)
+
+    # -- implemented by the node ----------------------------------------------------
+    def _add_measurements(self, sid: str, batch: MeasurementBatch) -> None:
         raise NotImplementedError
 
     def _add_pose(self, sid: str, state: StationStateSample) -> None:

@@ -20,21 +20,18 @@ from collections import Counter
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.publisher import Publisher
-from sensor_msgs.msg import PointCloud2
 
 from orbit_tracking.core.alignment import AlignConfig
-from orbit_tracking.core.errors import MeasurementError
 from orbit_tracking.core.fixes import TimedFix, TriangulationPipeline
 from orbit_tracking.core.triangulation import REASONS, Gates
 from orbit_tracking.ros import qos
 from orbit_tracking.ros.conversions import (
+    MeasurementBatch,
     StationStateSample,
     TimeBase,
-    cloud_to_measurements,
     diagnostic_array,
     diagnostic_status,
     fix_to_msg,
-    stamp_ns,
 )
 from orbit_tracking.ros.parameters import declare
 from orbit_tracking.ros.runner import run_node
@@ -190,23 +187,8 @@ class TriangulationNode(StationInputs):
             st.station_id, st.time, st.position, st.velocity, st.rotation, st.moving
         )
 
-    def _on_measurements(self, msg: PointCloud2, sid: str) -> None:
+    def _add_measurements(self, sid: str, batch: MeasurementBatch) -> None:
         t_start = time.monotonic()
-        tb = self._timebase(stamp_ns(msg.header.stamp))
-        try:
-            batch = cloud_to_measurements(msg, tb)
-        except MeasurementError as exc:
-            self._reject('invalid_messages', f'measurement message rejected: {exc}')
-            return
-        if batch.rejected:
-            self.counts['rejected_points'] += batch.rejected
-        if batch.station_id != sid:
-            self._reject(
-                'station_mismatch',
-                f'message on stations/{sid}/measurements has frame_id {batch.station_id!r}; '
-                'ignored',
-            )
-            return
         self.pipeline.add_measurements(
             batch.station_id, batch.fields, batch.time, batch.target_id, batch.values, batch.sigmas
         )
@@ -225,7 +207,8 @@ class TriangulationNode(StationInputs):
                     throttle_duration_sec=30.0,
                 )
         fixes = self.pipeline.process(wait_for_poses=waiting)
-        self._publish(fixes, tb)
+        if self.timebase is not None:  # always set once a message was decoded
+            self._publish(fixes, self.timebase)
         if fixes:
             self.proc_ms.append(1e3 * (time.monotonic() - t_start))
             latest = self.pipeline.aligner.latest
