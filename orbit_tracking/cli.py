@@ -156,7 +156,7 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f'orbit-tracking estimate: error: {exc}', file=sys.stderr)
         return 2
-    est = EstimatorConfig(knot_method=args.knot_method, use_telemetry=args.telemetry)
+    est = EstimatorConfig(knot_method=args.knot_method, use_telemetry=not args.no_telemetry)
     if not Path(args.bag).is_dir():
         raise FileNotFoundError(f'no bag folder {args.bag}')
     out = Path(args.out)
@@ -453,10 +453,9 @@ def build_parser() -> argparse.ArgumentParser:
         '--output-step', type=float, default=0.1, help='spacing of the output states [s]'
     )
     s.add_argument(
-        '--telemetry',
+        '--no-telemetry',
         action='store_true',
-        help='fuse telemetry as measurements with its own error model (default: telemetry only '
-        'places the knots; the fused covariance is still optimistic)',
+        help='do not fuse telemetry as measurements (it still places the knots)',
     )
     s.add_argument(
         '--knot-method',

@@ -95,9 +95,8 @@ class EstimatorConfig:
     gate_sigma : float
         Whitened-residual gate (0 disables it); ``gate_rounds`` re-solves at most.
     use_telemetry : bool
-        Fuse telemetry as weighted measurements with its own error model. Off by
-        default: the fused covariance is still optimistic (NEES above the band when the
-        telemetry drift bends faster than its error spline), see docs/ESTIMATOR.md.
+        Fuse telemetry as weighted measurements with its own error model (whose knots
+        the measurement-driven test refines like the trajectory's).
     telemetry_error_spacing : float
         Knot spacing [s] of the telemetry error spline (cubic).
     estimate_telemetry_noise : bool
@@ -123,7 +122,7 @@ class EstimatorConfig:
     max_halvings: int = 12
     gate_sigma: float = 5.0
     gate_rounds: int = 3
-    use_telemetry: bool = False
+    use_telemetry: bool = True
     telemetry_error_spacing: float = 15.0
     estimate_telemetry_noise: bool = True
     fix_weight: float = 0.0
@@ -326,6 +325,7 @@ class _Problem:
         cfg: EstimatorConfig,
         t0: float,
         t1: float,
+        tel_axes: Mapping[int, SplineAxis] | None = None,
     ) -> None:
         self.cfg = cfg
         self.offsets: dict[int, int] = {}
@@ -366,8 +366,11 @@ class _Problem:
                 if tid not in self.trajs or len(tel) < 4:
                     continue
                 traj = self.trajs[tid]
-                knots = uniform_knots(t0, t1, cfg.telemetry_error_spacing, degree=3)
-                axis = SplineAxis.from_interior(knots, t0, t1, 3)
+                if tel_axes and tid in tel_axes:
+                    axis = tel_axes[tid]
+                else:
+                    knots = uniform_knots(t0, t1, cfg.telemetry_error_spacing, degree=3)
+                    axis = SplineAxis.from_interior(knots, t0, t1, 3)
                 e0, e1 = axis.design(tel.time, 0), axis.design(tel.time, 1)
                 i3 = sp.identity(3, format='csr')
                 self.telemetry.append(
@@ -414,7 +417,7 @@ class _Problem:
                 )
         self.n = n
         self.gated: dict[int, NDArray[np.bool_]] = {}
-        self.rows: list[tuple[int, FloatArray, FloatArray, FloatArray]] = []
+        self.rows: list[tuple[int, FloatArray, FloatArray, FloatArray, bool]] = []
 
     # -- evaluation ------------------------------------------------------------------
 
@@ -430,7 +433,7 @@ class _Problem:
         jac: list[sp.csr_matrix] = []
         tags: list[tuple[str, int, NDArray[np.bool_]]] = []
         # per residual row: target, time, dF/dp and dF/dv (whitened), for the knot test
-        rows: list[tuple[int, FloatArray, FloatArray, FloatArray]] = []
+        rows: list[tuple[int, FloatArray, FloatArray, FloatArray, bool]] = []
         for bi, b in enumerate(self.stations):
             coef = self._coef(beta, b.target)
             m = b.time.size
@@ -448,7 +451,7 @@ class _Problem:
                 jm = jm[np.flatnonzero(use.ravel())]
                 jac.append(_shift(jm, self.offsets[b.target], self.n))
                 tt = np.broadcast_to(b.time[:, None], use.shape)[use]
-                rows.append((b.target, tt, hw[:, :, :3][use], hw[:, :, 3:][use]))
+                rows.append((b.target, tt, hw[:, :, :3][use], hw[:, :, 3:][use], False))
         for tb in self.telemetry:
             coef = self._coef(beta, tb.target)
             ecoef = beta[tb.offset : tb.offset + 3 * tb.axis.n_coef]
@@ -478,9 +481,11 @@ class _Problem:
                     unit = np.tile(eye / sig, (nv, 1))
                     zero = np.zeros_like(unit)
                     tt = np.repeat(tb.time[valid], 3)
-                    rows.append((tb.target, tt, zero if vel else unit, unit if vel else zero))
+                    rows.append(
+                        (tb.target, tt, zero if vel else unit, unit if vel else zero, True)
+                    )
                 z = np.zeros((ecoef.size, 3))
-                rows.append((-1, np.zeros(ecoef.size), z, z))
+                rows.append((-1, np.zeros(ecoef.size), z, z, False))
         for fb in self.fixes:
             coef = self._coef(beta, fb.target)
             m = fb.time.size
@@ -494,7 +499,7 @@ class _Problem:
                 jac.append(_shift(jm, self.offsets[fb.target], self.n))
                 wv = fb.whiten[fb.valid].reshape(-1, 3)
                 tt = np.repeat(fb.time[fb.valid], 3)
-                rows.append((fb.target, tt, wv, np.zeros_like(wv)))
+                rows.append((fb.target, tt, wv, np.zeros_like(wv), False))
         r_all = np.concatenate(res) if res else np.zeros(0)
         j_all = sp.vstack(jac).tocsr() if jacobian and jac else None
         if jacobian:
@@ -649,13 +654,67 @@ def _covariance(
     return r, jac, cov, cond, singular
 
 
+def _knot_scores(
+    ax: SplineAxis,
+    ts: FloatArray,
+    up: FloatArray,
+    uv: FloatArray,
+    ridx: NDArray[np.intp],
+    r: FloatArray,
+    jac: sp.csr_matrix,
+    cov: FloatArray,
+    min_len: float,
+) -> list[tuple[float, float]]:
+    """Score statistic of a knot at the midpoint of every interval of ``ax``.
+
+    ``ts`` are the (sorted) times of the residual rows ``ridx`` the axis acts on, and
+    ``up``/``uv`` the whitened derivatives of those rows by the axis' value and rate.
+    """
+    from scipy.interpolate import BSpline
+
+    out = []
+    brk = np.unique(ax.knots)
+    p = ax.degree
+    for lo, hi in zip(brk[:-1], brk[1:], strict=True):
+        if hi - lo < min_len:
+            continue
+        tau = 0.5 * (lo + hi)
+        idx = int(np.searchsorted(ax.knots, tau))
+        refined = np.insert(ax.knots, idx, tau)
+        s0 = min(max(idx - 2, 0), refined.size - p - 2)
+        local = refined[s0 : s0 + p + 2]
+        i0, i1 = np.searchsorted(ts, [local[0], local[-1]])
+        if i1 - i0 < 2:
+            continue
+        b = BSpline.basis_element(local, extrapolate=False)
+        tt = ts[i0:i1]
+        col = np.nan_to_num(b(tt)) * up[i0:i1] + np.nan_to_num(b.derivative()(tt)) * uv[i0:i1]
+        rows = ridx[i0:i1]
+        g = float(col @ r[rows])
+        c = jac[rows].T @ col
+        den = float(col @ col - c @ (cov @ c))
+        if den <= 1e-12 * float(col @ col):
+            continue
+        out.append((tau, g * g / den))
+    return out
+
+
+def _with_knots(ax: SplineAxis, new: Sequence[float]) -> SplineAxis:
+    return SplineAxis.from_interior(
+        np.sort(np.concatenate([ax.interior, np.asarray(new, dtype=float)])),
+        ax.t0,
+        ax.t1,
+        ax.degree,
+    )
+
+
 def _refine_knots(
     prob: _Problem,
     r: FloatArray,
     jac: sp.csr_matrix,
     cov: FloatArray,
     cfg: EstimatorConfig,
-) -> dict[int, list[SplineAxis]]:
+) -> tuple[dict[int, list[SplineAxis]], dict[int, SplineAxis]]:
     """Knots the measurements ask for (beyond the paper).
 
     For every knot interval of every axis, a score (Lagrange-multiplier) test of adding
@@ -663,17 +722,23 @@ def _refine_knots(
     ``s = (j^T r)^2 / (j^T j - (J^T j)^T (J^T J)^-1 (J^T j))`` is chi-square(1) when the
     spline already represents the trajectory. Midpoints with ``s`` above the Bonferroni
     quantile at ``refine_alpha`` are inserted. This catches what the rough trajectory
-    could not show (its noise hides model errors the measurements resolve).
+    could not show (its noise hides model errors the measurements resolve). The same
+    test runs on the telemetry error spline (each component), so a drift that bends
+    faster than its initial knots gets knots too instead of an optimistic covariance.
+
+    Returns the refined trajectory axes and telemetry error axes, per target (only those
+    that changed).
     """
-    from scipy.interpolate import BSpline
     from scipy.stats import chi2
 
-    tgt = np.concatenate([np.full(t.size, k) for k, t, _, _ in prob.rows])
-    tim = np.concatenate([t for _, t, _, _ in prob.rows])
-    hp = np.concatenate([h for _, _, h, _ in prob.rows])
-    hv = np.concatenate([h for _, _, _, h in prob.rows])
-    cands: list[tuple[int, int, float, float]] = []  # (target, axis, tau, score)
+    tgt = np.concatenate([np.full(row[1].size, row[0]) for row in prob.rows])
+    tim = np.concatenate([row[1] for row in prob.rows])
+    hp = np.concatenate([row[2] for row in prob.rows])
+    hv = np.concatenate([row[3] for row in prob.rows])
+    is_tel = np.concatenate([np.full(row[1].size, row[4]) for row in prob.rows])
     min_len = 2.0 * cfg.knots.min_spacing
+    traj_c: list[tuple[int, int, float, float]] = []  # (target, axis, tau, score)
+    tel_c: list[tuple[int, int, float, float]] = []  # (target, component, tau, score)
     for tid, traj in prob.trajs.items():
         sel = np.flatnonzero(tgt == tid)
         order = sel[np.argsort(tim[sel], kind='stable')]
@@ -681,58 +746,45 @@ def _refine_knots(
         for a, ax in enumerate(traj.axes):
             up = hp[order] @ traj.rotation[:, a]
             uv = hv[order] @ traj.rotation[:, a]
-            brk = np.unique(ax.knots)
-            p = ax.degree
-            for lo, hi in zip(brk[:-1], brk[1:], strict=True):
-                if hi - lo < min_len:
-                    continue
-                tau = 0.5 * (lo + hi)
-                idx = int(np.searchsorted(ax.knots, tau))
-                refined = np.insert(ax.knots, idx, tau)
-                s0 = idx - 2
-                local = refined[s0 : s0 + p + 2]
-                i0, i1 = np.searchsorted(ts, [local[0], local[-1]])
-                if i1 - i0 < 2:
-                    continue
-                b = BSpline.basis_element(local, extrapolate=False)
-                tt = ts[i0:i1]
-                col = (
-                    np.nan_to_num(b(tt)) * up[i0:i1]
-                    + np.nan_to_num(b.derivative()(tt)) * uv[i0:i1]
-                )
-                ridx = order[i0:i1]
-                g = float(col @ r[ridx])
-                c = jac[ridx].T @ col
-                den = float(col @ col - c @ (cov @ c))
-                if den <= 1e-12 * float(col @ col):
-                    continue
-                cands.append((tid, a, tau, g * g / den))
-    if not cands:
-        return {}
-    limit = float(chi2.isf(cfg.refine_alpha / len(cands), 1))
+            for tau, sc in _knot_scores(ax, ts, up, uv, order, r, jac, cov, min_len):
+                traj_c.append((tid, a, tau, sc))
+        tb = next((t for t in prob.telemetry if t.target == tid), None)
+        if tb is None:
+            continue
+        tsel = order[is_tel[order]]
+        for c in range(3):
+            scores = _knot_scores(
+                tb.axis, tim[tsel], hp[tsel, c], hv[tsel, c], tsel, r, jac, cov, min_len
+            )
+            tel_c.extend((tid, c, tau, sc) for tau, sc in scores)
+    n_cand = len(traj_c) + len(tel_c)
+    if n_cand == 0:
+        return {}, {}
+    limit = float(chi2.isf(cfg.refine_alpha / n_cand, 1))
     out: dict[int, list[SplineAxis]] = {}
     for tid, traj in prob.trajs.items():
         axes = list(traj.axes)
         changed = False
         for a in range(3):
-            new = [tau for k, ax_, tau, sc in cands if k == tid and ax_ == a and sc > limit]
+            new = [tau for k, ax_, tau, sc in traj_c if k == tid and ax_ == a and sc > limit]
             if new:
-                axes[a] = SplineAxis.from_interior(
-                    np.sort(np.concatenate([axes[a].interior, new])),
-                    axes[a].t0,
-                    axes[a].t1,
-                    axes[a].degree,
-                )
+                axes[a] = _with_knots(axes[a], new)
                 changed = True
         if changed:
             out[tid] = axes
-    return out
+    tel_out: dict[int, SplineAxis] = {}
+    for tb in prob.telemetry:
+        new = sorted({tau for k, _c, tau, sc in tel_c if k == tb.target and sc > limit})
+        if new:
+            tel_out[tb.target] = _with_knots(tb.axis, new)
+    return out, tel_out
 
 
 def _rebuild(
     prob: _Problem,
     beta: FloatArray,
     new_axes: Mapping[int, list[SplineAxis]],
+    new_tel: Mapping[int, SplineAxis],
     obs: Observations,
     cfg: EstimatorConfig,
     t0: float,
@@ -755,7 +807,8 @@ def _rebuild(
             coef = nt.fit_states(ts, x[:, :3], x[:, 3:], 1.0, 1.0)
             traj = nt
         sols[tid] = (traj, coef)
-    new = _Problem(obs, sols, cfg, t0, t1)
+    tel_axes = {tb.target: new_tel.get(tb.target, tb.axis) for tb in prob.telemetry}
+    new = _Problem(obs, sols, cfg, t0, t1, tel_axes)
     new.gated = prob.gated
     beta_new = np.zeros(new.n)
     for tid, (traj, coef) in sols.items():
@@ -763,8 +816,21 @@ def _rebuild(
         beta_new[o : o + traj.n_coef] = coef
     for tb_new, tb_old in zip(new.telemetry, prob.telemetry, strict=True):
         tb_new.noise = list(tb_old.noise)
-        n_e = 3 * tb_old.axis.n_coef
-        beta_new[tb_new.offset : tb_new.offset + n_e] = beta[tb_old.offset : tb_old.offset + n_e]
+        old_e = beta[tb_old.offset : tb_old.offset + 3 * tb_old.axis.n_coef].reshape(-1, 3)
+        if tb_new.axis is tb_old.axis:
+            new_e = old_e
+        else:  # refined knots contain the old ones: refit the same error curves
+            brk = np.unique(tb_new.axis.knots)
+            ts = np.unique(
+                np.concatenate(
+                    [np.linspace(a, b, 6) for a, b in zip(brk[:-1], brk[1:], strict=True)]
+                )
+            )
+            vals = tb_old.axis.evaluate(old_e, ts)
+            new_e = np.stack(
+                [tb_new.axis.fit(ts, vals[:, c], ridge=0.0) for c in range(3)], axis=1
+            )
+        beta_new[tb_new.offset : tb_new.offset + new_e.size] = new_e.ravel()
     return new, beta_new
 
 
@@ -914,10 +980,10 @@ def estimate(
         r, jac, cov, cond, singular = _covariance(prob, out.beta)
     added = {tid: 0 for tid in selections}
     for _ in range(cfg.refine_rounds):
-        new_axes = _refine_knots(prob, r, jac, cov, cfg)
-        if not new_axes:
+        new_axes, new_tel = _refine_knots(prob, r, jac, cov, cfg)
+        if not new_axes and not new_tel:
             break
-        prob, beta = _rebuild(prob, out.beta, new_axes, obs, cfg, t0, t1)
+        prob, beta = _rebuild(prob, out.beta, new_axes, new_tel, obs, cfg, t0, t1)
         for tid, axes in new_axes.items():
             added[tid] += sum(a.interior.size for a in axes) - sum(
                 a.interior.size for a in selections[tid].trajectory.axes

@@ -224,10 +224,9 @@ class EstimatorNode(StationInputs):
             use_telemetry=declare(
                 self,
                 'use_telemetry',
-                False,
+                True,
                 'Fuse telemetry as measurements (with its own error model); it is the rough '
-                'trajectory for the knots either way. Off by default: the fused covariance '
-                'is still optimistic.',
+                'trajectory for the knots either way.',
                 read_only=True,
             ),
             gate_sigma=declare(
