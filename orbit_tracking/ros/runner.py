@@ -48,6 +48,12 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> None
             executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RuntimeError:
+        # SIGINT shuts the context down from the signal handler; a wait that wakes in that
+        # moment may fail to take a message from an already invalidated subscription
+        # ("Unable to convert call argument"). That is a shutdown, not an error.
+        if rclpy.ok():
+            raise
     finally:
         if node is not None:
             node.destroy_node()
