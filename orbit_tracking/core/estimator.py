@@ -54,9 +54,11 @@ from orbit_tracking.core.knots import (
 )
 from orbit_tracking.core.measurements import predict, residual
 from orbit_tracking.core.observations import Observations
+from orbit_tracking.core.systematic import BiasModel, BiasParameter
 
 __all__ = [
     'KNOT_METHODS',
+    'BiasEstimate',
     'EstimationError',
     'Estimate',
     'EstimatorConfig',
@@ -107,6 +109,13 @@ class EstimatorConfig:
         Rounds of measurement-driven knot insertion after the solve (0 = off).
     refine_alpha : float
         Family-wise false-alarm probability of that knot test.
+    biases : tuple of BiasParameter
+        Systematic errors estimated jointly with the trajectories (shared by every
+        target a station sees), or held at known values.
+    bias_observability : float
+        A bias whose posterior sigma exceeds this fraction of its prior sigma is not
+        separable from the trajectory with this geometry: it is frozen at its prior and
+        reported as unobservable.
     segments : tuple of (start, end)
         Declared incomplete segments [s] (added to the detected ones).
     detect_segments : bool
@@ -128,6 +137,8 @@ class EstimatorConfig:
     fix_weight: float = 0.0
     refine_rounds: int = 4
     refine_alpha: float = 0.01
+    biases: tuple[BiasParameter, ...] = ()
+    bias_observability: float = 0.5
     segments: tuple[Segment, ...] = ()
     detect_segments: bool = True
     coverage: CoverageConfig = field(default_factory=CoverageConfig)
@@ -213,6 +224,20 @@ def state_covariance(traj: SplineTrajectory, cov: FloatArray, t: FloatArray) -> 
 
 
 @dataclass(frozen=True)
+class BiasEstimate:
+    """One systematic error after the solve. ``status`` is ``estimated``, ``known``
+    (held at its declared value) or ``unobservable: <reason>`` (frozen at its prior)."""
+
+    station: str
+    name: str
+    value: float
+    sigma: float
+    prior: float
+    prior_sigma: float
+    status: str
+
+
+@dataclass(frozen=True)
 class Estimate:
     """Outcome of one window, the way ``scipy.optimize`` reports.
 
@@ -255,6 +280,7 @@ class Estimate:
     knot_time: float
     solve_time: float
     covariance: FloatArray = field(repr=False, default_factory=lambda: np.zeros((0, 0)))
+    biases: tuple[BiasEstimate, ...] = ()
 
 
 # ---------------------------------------------------------------------------------------
@@ -273,6 +299,7 @@ class _StationBlock:
     pw: sp.csr_matrix  # (3m, n_t) world position design
     vw: sp.csr_matrix
     valid: NDArray[np.bool_]  # (m, k)
+    bias_index: list[int] = field(default_factory=list)  # into _Problem.biases
 
 
 @dataclass
@@ -415,11 +442,46 @@ class _Problem:
                         np.asarray(np.isfinite(fx.position).all(axis=1)),
                     )
                 )
+        present = {b.station for b in self.stations}
+        self.biases = [bp for bp in cfg.biases if bp.station in present]
+        for b in self.stations:
+            b.bias_index = [q for q, bp in enumerate(self.biases) if bp.station == b.station]
+        self.bias_offset = n
+        n += len(self.biases)
+        # prior sigma of each bias; a frozen or known bias gets a vanishing one
+        self.bias_sigma = np.array(
+            [bp.sigma if bp.estimate else bp.sigma * 1e-9 for bp in self.biases], dtype=float
+        )
+        self.bias_prior = np.array([bp.prior for bp in self.biases], dtype=float)
+        self.bias_status = ['estimated' if bp.estimate else 'known' for bp in self.biases]
         self.n = n
         self.gated: dict[int, NDArray[np.bool_]] = {}
+        self.gate_refused = 0.0
         self.rows: list[tuple[int, FloatArray, FloatArray, FloatArray, bool]] = []
 
     # -- evaluation ------------------------------------------------------------------
+
+    def predict_block(
+        self, bi: int, beta: FloatArray, jacobian: bool = False
+    ) -> tuple[FloatArray, FloatArray | None, FloatArray | None]:
+        """Measured values predicted for station block ``bi`` (biases applied), with
+        ``d/d state`` (m, k, 6) and ``d/d biases`` (m, k, p) of the block's biases."""
+        b = self.stations[bi]
+        coef = self._coef(beta, b.target)
+        m = b.time.size
+        p = (b.pw @ coef).reshape(m, 3) + self.origin[b.target]
+        v = (b.vw @ coef).reshape(m, 3)
+        true, h = predict(b.fields, np.hstack([p, v]), b.pose, jacobian=jacobian)  # type: ignore[arg-type]
+        if not b.bias_index:
+            return true, h, None
+        names = [self.biases[q].name for q in b.bias_index]
+        values = beta[self.bias_offset + np.asarray(b.bias_index)]
+        model = BiasModel(dict(zip(names, values.tolist(), strict=True)))
+        measured = model.apply(b.fields, true)
+        if not jacobian or h is None:
+            return measured, None, None
+        d_true, d_param = model.jacobian(b.fields, true, names)
+        return measured, np.einsum('mkj,mjs->mks', d_true, h), d_param
 
     def _coef(self, beta: FloatArray, tid: int) -> FloatArray:
         o = self.offsets[tid]
@@ -435,11 +497,7 @@ class _Problem:
         # per residual row: target, time, dF/dp and dF/dv (whitened), for the knot test
         rows: list[tuple[int, FloatArray, FloatArray, FloatArray, bool]] = []
         for bi, b in enumerate(self.stations):
-            coef = self._coef(beta, b.target)
-            m = b.time.size
-            p = (b.pw @ coef).reshape(m, 3) + self.origin[b.target]
-            v = (b.vw @ coef).reshape(m, 3)
-            pred, h = predict(b.fields, np.hstack([p, v]), b.pose, jacobian=jacobian)  # type: ignore[arg-type]
+            pred, h, dpar = self.predict_block(bi, beta, jacobian)
             r = residual(b.fields, np.nan_to_num(b.values), pred) / b.sigmas
             use = b.valid & ~self.gated.get(bi, np.zeros_like(b.valid))
             res.append(r[use])
@@ -449,7 +507,15 @@ class _Problem:
                 hw = h / b.sigmas[:, :, None]
                 jm = _row_contract(hw[:, :, :3], b.pw) + _row_contract(hw[:, :, 3:], b.vw)
                 jm = jm[np.flatnonzero(use.ravel())]
-                jac.append(_shift(jm, self.offsets[b.target], self.n))
+                jm = _shift(jm, self.offsets[b.target], self.n)
+                if dpar is not None:
+                    dw = (dpar / b.sigmas[:, :, None])[use]  # (rows, p)
+                    cols = self.bias_offset + np.asarray(b.bias_index)
+                    rr, cc = np.nonzero(dw)
+                    jm = jm + sp.csr_matrix(
+                        (dw[rr, cc], (rr, cols[cc])), shape=(dw.shape[0], self.n)
+                    )
+                jac.append(jm)
                 tt = np.broadcast_to(b.time[:, None], use.shape)[use]
                 rows.append((b.target, tt, hw[:, :, :3][use], hw[:, :, 3:][use], False))
         for tb in self.telemetry:
@@ -500,6 +566,20 @@ class _Problem:
                 wv = fb.whiten[fb.valid].reshape(-1, 3)
                 tt = np.repeat(fb.time[fb.valid], 3)
                 rows.append((fb.target, tt, wv, np.zeros_like(wv), False))
+        if self.biases:
+            bvals = beta[self.bias_offset : self.bias_offset + len(self.biases)]
+            res.append((self.bias_prior - bvals) / self.bias_sigma)
+            tags.append(('bias_prior', -1, np.ones(len(self.biases), dtype=bool)))
+            if jacobian:
+                q = np.arange(len(self.biases))
+                jac.append(
+                    sp.csr_matrix(
+                        (1.0 / self.bias_sigma, (q, self.bias_offset + q)),
+                        shape=(q.size, self.n),
+                    )
+                )
+                z = np.zeros((q.size, 3))
+                rows.append((-1, np.zeros(q.size), z, z, False))
         r_all = np.concatenate(res) if res else np.zeros(0)
         j_all = sp.vstack(jac).tocsr() if jacobian and jac else None
         if jacobian:
@@ -575,20 +655,31 @@ def _gauss_newton(prob: _Problem, beta: FloatArray, cfg: EstimatorConfig) -> _Gn
     return _GnOutcome(beta, cost, cfg.max_iterations, halvings, False, 'iteration limit')
 
 
+GATE_MAX_FRACTION = 0.05
+"""The residual gate rejects outliers, not the data: if it would reject more than this
+fraction of the rows, the model itself does not fit (e.g. unmodelled systematic errors),
+nothing is gated and the estimate says so."""
+
+
 def _gate(prob: _Problem, beta: FloatArray, gate: float) -> bool:
     """Mark station rows whose whitened residual exceeds ``gate``; True if it changed."""
-    changed = False
+    new_masks = {}
+    n_rows = n_bad = 0
     for bi, b in enumerate(prob.stations):
-        coef = prob._coef(beta, b.target)
-        m = b.time.size
-        x = np.hstack(
-            [(b.pw @ coef).reshape(m, 3) + prob.origin[b.target], (b.vw @ coef).reshape(m, 3)]
-        )
-        pred, _ = predict(b.fields, x, b.pose)  # type: ignore[arg-type]
+        pred, _, _ = prob.predict_block(bi, beta)
         r = residual(b.fields, np.nan_to_num(b.values), pred) / b.sigmas
-        new = b.valid & (np.abs(r) > gate)
+        new_masks[bi] = b.valid & (np.abs(r) > gate)
+        n_rows += int(b.valid.sum())
+        n_bad += int(new_masks[bi].sum())
+    if n_rows and n_bad > GATE_MAX_FRACTION * n_rows:
+        prob.gate_refused = n_bad / n_rows
+        new_masks = {bi: np.zeros_like(b.valid) for bi, b in enumerate(prob.stations)}
+    else:
+        prob.gate_refused = 0.0
+    changed = False
+    for bi, new in new_masks.items():
         old = prob.gated.get(bi)
-        if old is None or not np.array_equal(old, new):
+        if (old is None and new.any()) or (old is not None and not np.array_equal(old, new)):
             changed = True
         prob.gated[bi] = new
     return changed
@@ -810,10 +901,16 @@ def _rebuild(
     tel_axes = {tb.target: new_tel.get(tb.target, tb.axis) for tb in prob.telemetry}
     new = _Problem(obs, sols, cfg, t0, t1, tel_axes)
     new.gated = prob.gated
+    new.gate_refused = prob.gate_refused
     beta_new = np.zeros(new.n)
     for tid, (traj, coef) in sols.items():
         o = new.offsets[tid]
         beta_new[o : o + traj.n_coef] = coef
+    nb = len(prob.biases)
+    beta_new[new.bias_offset : new.bias_offset + nb] = beta[
+        prob.bias_offset : prob.bias_offset + nb
+    ]
+    new.bias_sigma, new.bias_status = prob.bias_sigma, prob.bias_status
     for tb_new, tb_old in zip(new.telemetry, prob.telemetry, strict=True):
         tb_new.noise = list(tb_old.noise)
         old_e = beta[tb_old.offset : tb_old.offset + 3 * tb_old.axis.n_coef].reshape(-1, 3)
@@ -832,6 +929,106 @@ def _rebuild(
             )
         beta_new[tb_new.offset : tb_new.offset + new_e.size] = new_e.ravel()
     return new, beta_new
+
+
+def _freeze_unobservable(
+    prob: _Problem, beta: FloatArray, cov: FloatArray, cfg: EstimatorConfig
+) -> bool:
+    """Freeze at their priors the biases the data do not separate from the rest.
+
+    A bias is observable when the measurements shrink its uncertainty well below its
+    prior: posterior sigma at most ``bias_observability`` times the prior sigma. Those
+    that fail are reset to the prior, get a vanishing prior sigma (so they no longer
+    move) and are reported with the reason, including their strongest correlation.
+    Returns True if any bias was frozen.
+    """
+    frozen = False
+    o = prob.bias_offset
+    sd = np.sqrt(np.maximum(np.diag(cov), 1e-300))
+    for q, bp in enumerate(prob.biases):
+        if prob.bias_status[q] != 'estimated':
+            continue
+        ratio = sd[o + q] / bp.sigma
+        if ratio <= cfg.bias_observability:
+            continue
+        corr = cov[o + q] / (sd[o + q] * sd)
+        corr[o + q] = 0.0
+        k = int(np.argmax(np.abs(corr)))
+        what = _parameter_name(prob, k)
+        prob.bias_status[q] = (
+            f'unobservable: the data leave {ratio:.0%} of its prior sigma '
+            f'(strongest correlation {corr[k]:+.3f} with {what}); held at its prior'
+        )
+        prob.bias_sigma[q] = bp.sigma * 1e-9
+        beta[o + q] = bp.prior
+        frozen = True
+    return frozen
+
+
+def _parameter_name(prob: _Problem, k: int) -> str:
+    if k >= prob.bias_offset:
+        bp = prob.biases[k - prob.bias_offset]
+        return f'bias {bp.station}/{bp.name}'
+    for tb in prob.telemetry:
+        if tb.offset <= k < tb.offset + 3 * tb.axis.n_coef:
+            return f'telemetry error of target {tb.target}'
+    for tid, off in prob.offsets.items():
+        if off <= k < off + prob.trajs[tid].n_coef:
+            return f'trajectory of target {tid}'
+    return f'parameter {k}'
+
+
+def _bias_estimates(prob: _Problem, beta: FloatArray, cov: FloatArray) -> tuple[BiasEstimate, ...]:
+    o = prob.bias_offset
+    out = []
+    for q, bp in enumerate(prob.biases):
+        status = prob.bias_status[q]
+        estimated = status == 'estimated'
+        out.append(
+            BiasEstimate(
+                bp.station,
+                bp.name,
+                float(beta[o + q]),
+                float(np.sqrt(max(cov[o + q, o + q], 0.0))) if estimated else float(bp.sigma),
+                bp.prior,
+                bp.sigma,
+                status,
+            )
+        )
+    return tuple(out)
+
+
+def _choose_knots_safely(
+    rough: RoughTrajectory,
+    t0: float,
+    t1: float,
+    segments: Sequence[Segment],
+    cfg: EstimatorConfig,
+    method: str,
+    frame: tuple[FloatArray, FloatArray] | None,
+    baseline_spacing: float = 3.0,
+    events: Sequence[float] | None = None,
+) -> KnotSelection:
+    """:func:`choose_knots`, but a failed l1 problem never loses the window: the other
+    installed interior-point solver is tried, then the densified knots are kept (the
+    reason is recorded in the selection's ``info``)."""
+    try:
+        return choose_knots(
+            rough, t0, t1, segments, cfg.knots, method, frame, baseline_spacing, events
+        )
+    except KnotSelectionError as first:
+        reason = str(first)
+    if cfg.knots.solver.upper() != 'CLARABEL':
+        try:
+            alt = replace(cfg.knots, solver='CLARABEL')
+            sel = choose_knots(
+                rough, t0, t1, segments, alt, method, frame, baseline_spacing, events
+            )
+            return replace(sel, info={**sel.info, 'fallback': f'CLARABEL after: {reason}'})
+        except KnotSelectionError as second:
+            reason += f'; CLARABEL: {second}'
+    sel = choose_knots(rough, t0, t1, segments, cfg.knots, 'dense', frame, events=events)
+    return replace(sel, info={'fallback': f'densified knots kept: {reason}'})
 
 
 # ---------------------------------------------------------------------------------------
@@ -921,14 +1118,9 @@ def estimate(
         if cfg.knot_method == 'polynomial':
             sel = _polynomial_selection(rough, t0, t1, cfg.polynomial_degree)
         else:
-            try:
-                sel = choose_knots(
-                    rough, t0, t1, segs, cfg.knots, cfg.knot_method, frame, cfg.baseline_spacing
-                )
-            except KnotSelectionError as exc:
-                # a failed LP must not lose the window: keep the densified knots instead
-                sel = choose_knots(rough, t0, t1, segs, cfg.knots, 'dense', frame)
-                sel = replace(sel, info={'fallback': f'densified knots kept: {exc}'})
+            sel = _choose_knots_safely(
+                rough, t0, t1, segs, cfg, cfg.knot_method, frame, cfg.baseline_spacing
+            )
         if previous and tid in previous:
             sel = _seed_from_previous(sel, previous[tid], rough)
         sel = replace(sel, rough_source=rough.source)
@@ -940,8 +1132,18 @@ def estimate(
     for tid, s in selections.items():
         o = prob.offsets[tid]
         beta[o : o + s.trajectory.n_coef] = s.coef
+    beta[prob.bias_offset : prob.bias_offset + len(prob.biases)] = prob.bias_prior
+    start = beta.copy()
     out, iterations, halvings = _solve(prob, beta, cfg)
     r, jac, cov, cond, singular = _covariance(prob, out.beta)
+    if _freeze_unobservable(prob, out.beta, cov, cfg):
+        # solve again from the start: the frozen biases must not leave their pull in the
+        # trajectory through a flat valley of the cost
+        prob.gated.clear()
+        out, it2, h2 = _solve(prob, start, cfg)
+        iterations += it2
+        halvings += h2
+        r, jac, cov, cond, singular = _covariance(prob, out.beta)
     noisy = [t for t, s in selections.items() if s.rough_source == 'fixes']
     if noisy and cfg.knot_method == 'sparse':
         # fixes are a poor rough trajectory (no velocity, metres of noise): select the
@@ -955,18 +1157,21 @@ def estimate(
             pc = state_covariance(sol, cov[o : o + sol.n_coef, o : o + sol.n_coef], tt)
             sp_ = float(np.sqrt(np.median(np.trace(pc[:, :3, :3], axis1=1, axis2=2)) / 3))
             sv_ = float(np.sqrt(np.median(np.trace(pc[:, 3:, 3:], axis1=1, axis2=2)) / 3))
+            if not (np.isfinite(sp_) and np.isfinite(sv_) and sp_ > 0.0 and sv_ > 0.0):
+                continue  # a degenerate first solution: keep the knots from the fixes
             rough2 = RoughTrajectory('first solution', tt, x[:, :3], x[:, 3:], sp_, sv_)
-            sel2 = choose_knots(
+            sel2 = _choose_knots_safely(
                 rough2,
                 t0,
                 t1,
                 segments[tid],
-                cfg.knots,
+                cfg,
                 'sparse',
                 (sol.origin, sol.rotation),
                 events=selections[tid].events,
             )
             selections[tid] = replace(sel2, rough_source='fixes, then first solution')
+        first, first_beta = prob, out.beta
         prob = _Problem(
             obs, {t: (s.trajectory, s.coef) for t, s in selections.items()}, cfg, t0, t1
         )
@@ -974,6 +1179,11 @@ def estimate(
         for tid, s in selections.items():
             o = prob.offsets[tid]
             beta[o : o + s.trajectory.n_coef] = s.coef
+        nb = len(prob.biases)
+        beta[prob.bias_offset : prob.bias_offset + nb] = first_beta[
+            first.bias_offset : first.bias_offset + nb
+        ]
+        prob.bias_sigma, prob.bias_status = first.bias_sigma, first.bias_status
         out, it2, h2 = _solve(prob, beta, cfg)
         iterations += it2
         halvings += h2
@@ -1007,12 +1217,7 @@ def estimate(
         nan = int((~b.valid).sum())
         if nan:
             rejected[(b.station, 'not_measured')] += nan
-        coef = prob._coef(out.beta, b.target)
-        m = b.time.size
-        x = np.hstack(
-            [(b.pw @ coef).reshape(m, 3) + prob.origin[b.target], (b.vw @ coef).reshape(m, 3)]
-        )
-        pred, _ = predict(b.fields, x, b.pose)  # type: ignore[arg-type]
+        pred, _, _ = prob.predict_block(bi, out.beta)
         rr = residual(b.fields, b.values, pred) / b.sigmas
         rr[g] = np.nan
         residuals[b.station if b.target == ids[0] else f'{b.station}/{b.target}'] = (
@@ -1043,8 +1248,13 @@ def estimate(
     msg = out.message + (
         '; normal matrix singular (pseudo-inverse covariance)' if singular else ''
     )
+    if prob.gate_refused:
+        msg += (
+            f'; the residual gate would reject {prob.gate_refused:.0%} of the rows, so the '
+            'model does not fit the data (unmodelled systematic errors?): nothing gated'
+        )
     return Estimate(
-        success=out.converged and not singular,
+        success=out.converged and not singular and not prob.gate_refused,
         message=msg,
         t0=t0,
         t1=t1,
@@ -1061,6 +1271,7 @@ def estimate(
         knot_time=knot_time,
         solve_time=solve_time,
         covariance=cov,
+        biases=_bias_estimates(prob, out.beta, cov),
     )
 
 

@@ -29,7 +29,7 @@ from numpy.typing import ArrayLike, NDArray
 from orbit_tracking.core.errors import MeasurementError
 from orbit_tracking.core.measurements import FIELDS
 
-__all__ = ['BIAS_PARAMETERS', 'BiasModel']
+__all__ = ['BIAS_PARAMETERS', 'BiasModel', 'BiasParameter']
 
 FloatArray = NDArray[np.float64]
 
@@ -144,3 +144,43 @@ def _los_columns(fields: Sequence[str]) -> tuple[int, int]:
         raise MeasurementError(
             f'the los_theta rotation needs los_alpha and los_beta fields; got {list(fields)}'
         ) from None
+
+
+@dataclass(frozen=True)
+class BiasParameter:
+    """A systematic error to estimate (or to hold at a known value), like a parameter
+    driver: declared per station and parameter name.
+
+    Attributes
+    ----------
+    station : str
+        Station id.
+    name : str
+        One of :data:`BIAS_PARAMETERS` (field units; rad for ``los_theta``).
+    prior : float
+        Prior (initial) value.
+    sigma : float
+        Prior standard deviation: a weak prior keeps the estimate bounded when the data
+        barely constrain it.
+    estimate : bool
+        False holds the bias at ``prior`` (a known calibration).
+    """
+
+    station: str
+    name: str
+    prior: float = 0.0
+    sigma: float = 1.0
+    estimate: bool = True
+
+    def __post_init__(self) -> None:
+        if self.name not in BIAS_PARAMETERS:
+            raise MeasurementError(
+                f'station {self.station}: unknown bias parameter {self.name!r}; '
+                f'known: {BIAS_PARAMETERS}'
+            )
+        if not (self.sigma > 0.0 and np.isfinite(self.sigma)):
+            raise ValueError(
+                f'bias {self.station}/{self.name}: sigma must be > 0; got {self.sigma}'
+            )
+        if not np.isfinite(self.prior):
+            raise ValueError(f'bias {self.station}/{self.name}: prior must be finite')
