@@ -54,7 +54,7 @@ from orbit_tracking.core.knots import (
 )
 from orbit_tracking.core.measurements import predict, residual
 from orbit_tracking.core.observations import Observations
-from orbit_tracking.core.systematic import BiasModel, BiasParameter
+from orbit_tracking.core.systematic import CLOCK, BiasModel, BiasParameter
 
 __all__ = [
     'KNOT_METHODS',
@@ -300,6 +300,9 @@ class _StationBlock:
     vw: sp.csr_matrix
     valid: NDArray[np.bool_]  # (m, k)
     bias_index: list[int] = field(default_factory=list)  # into _Problem.biases
+    clock: int | None = None  # position of the clock bias in bias_index
+    tau: float = 0.0  # clock offset the designs pw, vw (and aw) are evaluated at
+    aw: sp.csr_matrix | None = None  # acceleration design (clock Jacobian)
 
 
 @dataclass
@@ -446,6 +449,8 @@ class _Problem:
         self.biases = [bp for bp in cfg.biases if bp.station in present]
         for b in self.stations:
             b.bias_index = [q for q, bp in enumerate(self.biases) if bp.station == b.station]
+            names = [self.biases[q].name for q in b.bias_index]
+            b.clock = names.index(CLOCK) if CLOCK in names else None
         self.bias_offset = n
         n += len(self.biases)
         # prior sigma of each bias; a frozen or known bias gets a vanishing one
@@ -454,6 +459,8 @@ class _Problem:
         )
         self.bias_prior = np.array([bp.prior for bp in self.biases], dtype=float)
         self.bias_status = ['estimated' if bp.estimate else 'known' for bp in self.biases]
+        self.bias_lower = np.array([bp.bounds[0] for bp in self.biases], dtype=float)
+        self.bias_upper = np.array([bp.bounds[1] for bp in self.biases], dtype=float)
         self.n = n
         self.gated: dict[int, NDArray[np.bool_]] = {}
         self.gate_refused = 0.0
@@ -468,6 +475,9 @@ class _Problem:
         ``d/d state`` (m, k, 6) and ``d/d biases`` (m, k, p) of the block's biases."""
         b = self.stations[bi]
         coef = self._coef(beta, b.target)
+        idx = self.bias_offset + np.asarray(b.bias_index, dtype=int)
+        if b.clock is not None:
+            self._clock_designs(b, float(beta[idx[b.clock]]))
         m = b.time.size
         p = (b.pw @ coef).reshape(m, 3) + self.origin[b.target]
         v = (b.vw @ coef).reshape(m, 3)
@@ -475,13 +485,39 @@ class _Problem:
         if not b.bias_index:
             return true, h, None
         names = [self.biases[q].name for q in b.bias_index]
-        values = beta[self.bias_offset + np.asarray(b.bias_index)]
-        model = BiasModel(dict(zip(names, values.tolist(), strict=True)))
+        keep = [j for j, name in enumerate(names) if name != CLOCK]
+        values = beta[idx]
+        model = BiasModel({names[j]: float(values[j]) for j in keep})
         measured = model.apply(b.fields, true)
         if not jacobian or h is None:
             return measured, None, None
-        d_true, d_param = model.jacobian(b.fields, true, names)
-        return measured, np.einsum('mkj,mjs->mks', d_true, h), d_param
+        d_true, d_value = model.jacobian(b.fields, true, [names[j] for j in keep])
+        h_meas = np.einsum('mkj,mjs->mks', d_true, h)
+        d_param = np.zeros((m, len(b.fields), len(names)))
+        d_param[:, :, keep] = d_value
+        if b.clock is not None:
+            # the row tagged t measured the target at t + clock: d/d clock = H [v; a]
+            assert b.aw is not None
+            a = (b.aw @ coef).reshape(m, 3)
+            d_param[:, :, b.clock] = np.einsum('mks,ms->mk', h_meas, np.hstack([v, a]))
+        return measured, h_meas, d_param
+
+    def _clock_designs(self, b: _StationBlock, tau: float) -> None:
+        """Designs of a block at its rows' true epochs ``t + tau`` (rebuilt when the
+        clock estimate moves)."""
+        if b.aw is not None and tau == b.tau:
+            return
+        traj = self.trajs[b.target]
+        t = np.clip(b.time + tau, traj.t0, traj.t1)  # a row at the edge stays on it
+        b.pw, b.vw, b.aw = (traj.world_design(t, nu) for nu in (0, 1, 2))
+        b.tau = tau
+
+    def project(self, beta: FloatArray) -> FloatArray:
+        """``beta`` with every bias clipped into its declared bounds."""
+        if self.biases:
+            sl = slice(self.bias_offset, self.bias_offset + len(self.biases))
+            beta[sl] = np.clip(beta[sl], self.bias_lower, self.bias_upper)
+        return beta
 
     def _coef(self, beta: FloatArray, tid: int) -> FloatArray:
         o = self.offsets[tid]
@@ -638,7 +674,7 @@ def _gauss_newton(prob: _Problem, beta: FloatArray, cfg: EstimatorConfig) -> _Gn
         step, _, _ = _normal_solve(n, g)
         omega = 1.0
         for _ in range(cfg.max_halvings + 1):
-            trial = beta + omega * step
+            trial = prob.project(beta + omega * step)
             c_new = prob.cost(trial)
             if c_new <= cost:
                 break
@@ -932,7 +968,7 @@ def _rebuild(
 
 
 def _freeze_unobservable(
-    prob: _Problem, beta: FloatArray, cov: FloatArray, cfg: EstimatorConfig
+    prob: _Problem, beta: FloatArray, cov: FloatArray, cfg: EstimatorConfig, when: str
 ) -> bool:
     """Freeze at their priors the biases the data do not separate from the rest.
 
@@ -956,7 +992,7 @@ def _freeze_unobservable(
         k = int(np.argmax(np.abs(corr)))
         what = _parameter_name(prob, k)
         prob.bias_status[q] = (
-            f'unobservable: the data leave {ratio:.0%} of its prior sigma '
+            f'unobservable ({when}): the data leave {ratio:.0%} of its prior sigma '
             f'(strongest correlation {corr[k]:+.3f} with {what}); held at its prior'
         )
         prob.bias_sigma[q] = bp.sigma * 1e-9
@@ -984,11 +1020,18 @@ def _bias_estimates(prob: _Problem, beta: FloatArray, cov: FloatArray) -> tuple[
     for q, bp in enumerate(prob.biases):
         status = prob.bias_status[q]
         estimated = status == 'estimated'
+        value = float(beta[o + q])
+        for side, limit in (('lower', bp.bounds[0]), ('upper', bp.bounds[1])):
+            if estimated and math.isfinite(limit) and abs(value - limit) <= 1e-9 * bp.sigma:
+                status = (
+                    f'estimated, at its {side} bound {limit:g}: the data push beyond it, '
+                    'so the sigma is conditional on the bound'
+                )
         out.append(
             BiasEstimate(
                 bp.station,
                 bp.name,
-                float(beta[o + q]),
+                value,
                 float(np.sqrt(max(cov[o + q, o + q], 0.0))) if estimated else float(bp.sigma),
                 bp.prior,
                 bp.sigma,
@@ -1133,10 +1176,14 @@ def estimate(
         o = prob.offsets[tid]
         beta[o : o + s.trajectory.n_coef] = s.coef
     beta[prob.bias_offset : prob.bias_offset + len(prob.biases)] = prob.bias_prior
+    if 'estimated' in prob.bias_status:
+        # observability before solving: the augmented normal matrix at the initial guess
+        _, _, cov0, _, _ = _covariance(prob, beta)
+        _freeze_unobservable(prob, beta, cov0, cfg, 'before the solve')
     start = beta.copy()
     out, iterations, halvings = _solve(prob, beta, cfg)
     r, jac, cov, cond, singular = _covariance(prob, out.beta)
-    if _freeze_unobservable(prob, out.beta, cov, cfg):
+    if _freeze_unobservable(prob, out.beta, cov, cfg, 'at the solution'):
         # solve again from the start: the frozen biases must not leave their pull in the
         # trajectory through a flat valley of the cost
         prob.gated.clear()

@@ -20,6 +20,8 @@ Two kinds of parameters are supported, named as the contract's
 
 from __future__ import annotations
 
+import math
+
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -29,12 +31,21 @@ from numpy.typing import ArrayLike, NDArray
 from orbit_tracking.core.errors import MeasurementError
 from orbit_tracking.core.measurements import FIELDS
 
-__all__ = ['BIAS_PARAMETERS', 'BiasModel', 'BiasParameter']
+__all__ = ['BIAS_PARAMETERS', 'CLOCK', 'ESTIMABLE_BIASES', 'BiasModel', 'BiasParameter']
 
 FloatArray = NDArray[np.float64]
 
 BIAS_PARAMETERS: tuple[str, ...] = (*FIELDS, 'los_theta')
-"""Every systematic-error parameter name."""
+"""Every systematic-error parameter of the measured values."""
+
+CLOCK = 'clock'
+"""The station's time-tag offset [s]: its clock reads ``t`` when the true time is
+``t + clock``, so a row tagged ``t`` measured the target at ``t + clock`` (the station's
+own pose is taken at the tag: its navigation data runs on the reference clock)."""
+
+ESTIMABLE_BIASES: tuple[str, ...] = (*BIAS_PARAMETERS, CLOCK)
+"""Every systematic error the estimator can declare (``trajectory/biases`` key without
+the ``_bias`` suffix)."""
 
 
 @dataclass(frozen=True)
@@ -156,7 +167,8 @@ class BiasParameter:
     station : str
         Station id.
     name : str
-        One of :data:`BIAS_PARAMETERS` (field units; rad for ``los_theta``).
+        One of :data:`ESTIMABLE_BIASES` (field units; rad for ``los_theta``, s for
+        ``clock``).
     prior : float
         Prior (initial) value.
     sigma : float
@@ -164,6 +176,9 @@ class BiasParameter:
         barely constrain it.
     estimate : bool
         False holds the bias at ``prior`` (a known calibration).
+    bounds : (float, float)
+        Lower and upper bound; the estimate is projected into them at every step and
+        flagged when it ends on one. Default unbounded.
     """
 
     station: str
@@ -171,12 +186,13 @@ class BiasParameter:
     prior: float = 0.0
     sigma: float = 1.0
     estimate: bool = True
+    bounds: tuple[float, float] = (-math.inf, math.inf)
 
     def __post_init__(self) -> None:
-        if self.name not in BIAS_PARAMETERS:
+        if self.name not in ESTIMABLE_BIASES:
             raise MeasurementError(
                 f'station {self.station}: unknown bias parameter {self.name!r}; '
-                f'known: {BIAS_PARAMETERS}'
+                f'known: {ESTIMABLE_BIASES}'
             )
         if not (self.sigma > 0.0 and np.isfinite(self.sigma)):
             raise ValueError(
@@ -184,3 +200,14 @@ class BiasParameter:
             )
         if not np.isfinite(self.prior):
             raise ValueError(f'bias {self.station}/{self.name}: prior must be finite')
+        lo, hi = self.bounds
+        if not lo < hi:
+            raise ValueError(
+                f'bias {self.station}/{self.name}: bounds must have lower < upper; '
+                f'got {self.bounds}'
+            )
+        if not lo <= self.prior <= hi:
+            raise ValueError(
+                f'bias {self.station}/{self.name}: prior {self.prior} outside the bounds '
+                f'{self.bounds}'
+            )
