@@ -138,7 +138,7 @@ class EstimatorConfig:
     refine_rounds: int = 4
     refine_alpha: float = 0.01
     biases: tuple[BiasParameter, ...] = ()
-    bias_observability: float = 0.5
+    bias_observability: float = 0.9
     segments: tuple[Segment, ...] = ()
     detect_segments: bool = True
     coverage: CoverageConfig = field(default_factory=CoverageConfig)
@@ -691,6 +691,9 @@ def _gauss_newton(prob: _Problem, beta: FloatArray, cfg: EstimatorConfig) -> _Gn
     return _GnOutcome(beta, cost, cfg.max_iterations, halvings, False, 'iteration limit')
 
 
+REFINE_MAX_CHI2 = 3.0
+"""The measurement-driven knot test runs only while chi2/dof of the fit is below this."""
+
 GATE_MAX_FRACTION = 0.05
 """The residual gate rejects outliers, not the data: if it would reject more than this
 fraction of the rows, the model itself does not fit (e.g. unmodelled systematic errors),
@@ -778,7 +781,38 @@ def _covariance(
     except np.linalg.LinAlgError:
         cov = np.linalg.pinv(ns) / d[:, None] / d[None, :]
         singular = True
+    frozen = [
+        (prob.bias_offset + q, bp.sigma)
+        for q, bp in enumerate(prob.biases)
+        if prob.bias_status[q].startswith('unobservable')
+    ]
+    if frozen:
+        cov = _consider(cov, n, frozen)
     return r, jac, cov, cond, singular
+
+
+def _consider(
+    cov: FloatArray, normal: FloatArray, frozen: Sequence[tuple[int, float]]
+) -> FloatArray:
+    """Covariance with the frozen biases as *consider* parameters.
+
+    A frozen bias is held at its prior, but its prior uncertainty still moves everything
+    fitted with it: with ``S = -N_xx^-1 N_xc`` the sensitivity of the estimated
+    parameters to the frozen ones, ``P_x += S P_c S^T`` (and ``P_xc = S P_c``). Without
+    this the other estimates would claim an accuracy the frozen errors deny them.
+    ``cov`` (from the normal matrix with the frozen biases pinned) is ``N_xx^-1`` on the
+    estimated block.
+    """
+    c = np.array([k for k, _ in frozen])
+    pc = np.array([sig for _, sig in frozen]) ** 2
+    x = np.setdiff1d(np.arange(cov.shape[0]), c)
+    sens = -cov[np.ix_(x, x)] @ normal[np.ix_(x, c)]  # (n_x, n_c)
+    out = cov.copy()
+    out[np.ix_(x, x)] += (sens * pc) @ sens.T
+    out[np.ix_(x, c)] = sens * pc
+    out[np.ix_(c, x)] = (sens * pc).T
+    out[np.ix_(c, c)] = np.diag(pc)
+    return out
 
 
 def _knot_scores(
@@ -1236,7 +1270,17 @@ def estimate(
         halvings += h2
         r, jac, cov, cond, singular = _covariance(prob, out.beta)
     added = {tid: 0 for tid in selections}
+    refine_note = ''
     for _ in range(cfg.refine_rounds):
+        fit = float(r @ r) / max(r.size - prob.n, 1)
+        if fit > REFINE_MAX_CHI2:
+            # the score test assumes the model fits up to its knots; data this far off
+            # (unmodelled systematic errors) would ask for knots everywhere
+            refine_note = (
+                f'; knot test skipped: chi2/dof {fit:.1f} > {REFINE_MAX_CHI2:g}, the model '
+                'does not fit the data'
+            )
+            break
         new_axes, new_tel = _refine_knots(prob, r, jac, cov, cfg)
         if not new_axes and not new_tel:
             break
@@ -1292,8 +1336,10 @@ def estimate(
             else (tel.axis, out.beta[tel.offset : tel.offset + 3 * tel.axis.n_coef].copy()),
             None if tel is None else (tel.noise[0], tel.noise[1]),
         )
-    msg = out.message + (
-        '; normal matrix singular (pseudo-inverse covariance)' if singular else ''
+    msg = (
+        out.message
+        + refine_note
+        + ('; normal matrix singular (pseudo-inverse covariance)' if singular else '')
     )
     if prob.gate_refused:
         msg += (

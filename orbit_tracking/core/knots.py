@@ -480,7 +480,19 @@ def select_knots(
     d1 = np.maximum(cfg.delta_velocity, 3.0 * sd1)
     x = cp.Variable(ax.n_coef)
     base = c @ coef
-    scale = 1.0 / max(float(np.max(np.abs(base))), 1e-12)
+    if float(np.max(np.abs(base), initial=0.0)) <= cfg.jump_epsilon:
+        # every candidate jump is already negligible (a rough trajectory that is one
+        # polynomial): drop them all without an LP that would only be scaled noise
+        interior = ax.interior
+        drop = set(np.round(tau[cand], 12))
+        kept = np.array([k for k in interior if round(float(k), 12) not in drop])
+        reduced = SplineAxis.from_interior(kept, ax.t0, ax.t1, ax.degree)
+        return (
+            reduced,
+            np.asarray(c_all @ coef),
+            {'solver': 'none', 'status': 'negligible jumps', 'solve_time': 0.0},
+        )
+    scale = 1.0 / float(np.max(np.abs(base)))
     prob = cp.Problem(
         cp.Minimize(scale * cp.norm1(c @ x + base)),
         [cp.abs(k0 @ x) <= d0, cp.abs(k1 @ x) <= d1],
@@ -489,8 +501,15 @@ def select_knots(
     solver = cfg.solver.upper()
     try:
         if solver == 'HIGHS':
-            # interior point + crossover: a vertex (exact zeros) in half the simplex time
-            prob.solve(solver=solver, highs_options={'solver': 'ipm'})  # type: ignore[no-untyped-call]
+            # interior point + crossover: a vertex (exact zeros) in half the simplex time;
+            # on a badly scaled problem the interior point may stall, and the dual
+            # simplex then usually still finds the vertex
+            try:
+                prob.solve(solver=solver, highs_options={'solver': 'ipm'})  # type: ignore[no-untyped-call]
+            except (cp.error.SolverError, ValueError):
+                prob.solve(solver=solver)  # type: ignore[no-untyped-call]
+            if prob.status != cp.OPTIMAL:
+                prob.solve(solver=solver)  # type: ignore[no-untyped-call]
         else:
             prob.solve(solver=solver)  # type: ignore[no-untyped-call]
     except (cp.error.SolverError, ValueError) as exc:

@@ -21,7 +21,6 @@ Two kinds of parameters are supported, named as the contract's
 from __future__ import annotations
 
 import math
-
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
