@@ -238,3 +238,43 @@ def test_several_targets_share_the_satellite_biases_and_pin_them_better_than_any
         for tid, est in single.items():
             other = next(o for o in est.biases if (o.station, o.name) == (b.station, b.name))
             assert b.sigma < other.sigma, (b, tid, other)
+
+
+def test_the_thrust_along_velocity_constraint_lets_one_target_separate_the_biases():
+    """Measured on seed003_q3: position RMS 2.26 km -> 0.25 km, biases within 0.2 sigma."""
+    from orbit_tracking.bench_biases import THRUST_SIGMA, declare_biases
+    from orbit_tracking.core.estimator import _thrust_normal
+
+    # the constraint's Jacobian against central differences
+    rng = np.random.default_rng(1)
+    p = rng.normal(size=(4, 3)) * 1e6 + [0.0, 6.5e6, 0.0]
+    v, a = rng.normal(size=(4, 3)) * 1e3, rng.normal(size=(4, 3)) * 30.0
+    _, *jac = _thrust_normal(p, v, a, 3.986e14, True)
+    for i, step in enumerate((1.0, 1e-3, 1e-4)):
+        for k in range(3):
+            hi, lo = [p.copy(), v.copy(), a.copy()], [p.copy(), v.copy(), a.copy()]
+            hi[i][:, k] += step
+            lo[i][:, k] -= step
+            num = (
+                _thrust_normal(*hi, 3.986e14, False)[0] - _thrust_normal(*lo, 3.986e14, False)[0]
+            ) / (2 * step)
+            np.testing.assert_allclose(jac[i][:, :, k], num, atol=1e-9)
+    result, obs = _satellite_run('seed003_q3')
+    sc = result.scenario
+    truth = {(s.id, k): v for s in sc.stations for k, v in s.bias.items()}
+    errors = {}
+    for sigma in (0.0, THRUST_SIGMA):
+        est = estimate(
+            obs,
+            sc.t_start,
+            sc.t_end,
+            EstimatorConfig(biases=declare_biases(sc), thrust_along_velocity=sigma),
+        )
+        assert est.success, est.message
+        tr = result.truth[0]
+        m = (tr.time > sc.t_start + 2.0) & (tr.time < sc.t_end - 2.0)
+        x, _ = est.targets[0].states(tr.time[m])
+        errors[sigma] = float(np.sqrt(np.mean(np.sum((x[:, :3] - tr.position[m]) ** 2, 1))))
+        for b in est.biases:
+            assert abs(b.value - truth[(b.station, b.name)]) < 3.0 * b.sigma, b
+    assert errors[THRUST_SIGMA] < 0.25 * errors[0.0], errors

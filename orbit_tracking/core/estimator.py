@@ -116,6 +116,17 @@ class EstimatorConfig:
         A bias whose posterior sigma exceeds this fraction of its prior sigma is not
         separable from the trajectory with this geometry: it is frozen at its prior and
         reported as unobservable.
+    thrust_along_velocity : float
+        Sigma [m/s^2] of an optional dynamics constraint for a vehicle boosting with its
+        thrust along the velocity (zero angle of attack, seed 003): at every
+        ``thrust_grid`` seconds the component of ``a - g(p)`` normal to ``v`` is a
+        pseudo-measurement of zero. Needs an inertial, Earth-centred world frame (point-mass
+        gravity ``gm``; J2 is left in the sigma). 0 (default) = off. It is what lets one
+        target separate the satellites' biases from its trajectory.
+    thrust_grid : float
+        Spacing [s] of those pseudo-measurements.
+    gm : float
+        Gravitational parameter [m^3/s^2] of that constraint.
     segments : tuple of (start, end)
         Declared incomplete segments [s] (added to the detected ones).
     detect_segments : bool
@@ -139,6 +150,9 @@ class EstimatorConfig:
     refine_alpha: float = 0.01
     biases: tuple[BiasParameter, ...] = ()
     bias_observability: float = 0.9
+    thrust_along_velocity: float = 0.0
+    thrust_grid: float = 0.5
+    gm: float = 3.986005e14
     segments: tuple[Segment, ...] = ()
     detect_segments: bool = True
     coverage: CoverageConfig = field(default_factory=CoverageConfig)
@@ -154,6 +168,8 @@ class EstimatorConfig:
             raise ValueError('gate_sigma and fix_weight must be >= 0')
         if self.telemetry_error_spacing <= 0.0:
             raise ValueError('telemetry_error_spacing must be > 0')
+        if self.thrust_along_velocity < 0.0 or self.thrust_grid <= 0.0 or self.gm <= 0.0:
+            raise ValueError('thrust_along_velocity must be >= 0, thrust_grid and gm > 0')
         for a, b in self.segments:
             if not b > a:
                 raise ValueError(f'segment ({a}, {b}) must have end > start')
@@ -342,6 +358,34 @@ def _row_contract(h: FloatArray, design: sp.csr_matrix) -> sp.csr_matrix:
     return (s @ design).tocsr()
 
 
+def _thrust_normal(
+    p: FloatArray, v: FloatArray, a: FloatArray, gm: float, jacobian: bool
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """``c = (I - u u^T)(a - g(p))`` with ``u = v/|v|`` and ``g = -gm p/|p|^3``: the
+    non-gravitational acceleration normal to the velocity, (m, 3); and its derivatives
+    by p, v and a, (m, 3, 3) each (zeros when ``jacobian`` is False)."""
+    rn = np.linalg.norm(p, axis=1)
+    g = -gm * p / rn[:, None] ** 3
+    f = a - g
+    vn = np.linalg.norm(v, axis=1)
+    u = v / vn[:, None]
+    eye = np.eye(3)
+    proj = eye - np.einsum('mi,mj->mij', u, u)
+    c = np.einsum('mij,mj->mi', proj, f)
+    m = p.shape[0]
+    if not jacobian:
+        z = np.zeros((m, 3, 3))
+        return c, z, z, z
+    dg = -gm * (
+        eye / rn[:, None, None] ** 3 - 3.0 * np.einsum('mi,mj->mij', p, p) / rn[:, None, None] ** 5
+    )
+    jp = -np.einsum('mij,mjk->mik', proj, dg)
+    fm = np.einsum('mj,mjk->mk', f, proj)  # f^T (I - u u^T)
+    fu = np.einsum('mi,mi->m', f, u)
+    jv = -(np.einsum('mi,mk->mik', u, fm) + fu[:, None, None] * proj) / vn[:, None, None]
+    return c, jp, jv, proj
+
+
 def _shift(mat: sp.spmatrix, offset: int, n: int) -> sp.csr_matrix:
     coo = mat.tocoo()
     return sp.csr_matrix((coo.data, (coo.row, coo.col + offset)), shape=(coo.shape[0], n))
@@ -445,6 +489,12 @@ class _Problem:
                         np.asarray(np.isfinite(fx.position).all(axis=1)),
                     )
                 )
+        # the thrust-along-velocity constraint: designs on a grid per target
+        self.dynamics: list[tuple[int, sp.csr_matrix, sp.csr_matrix, sp.csr_matrix]] = []
+        if cfg.thrust_along_velocity > 0.0:
+            for tid, traj in self.trajs.items():
+                tg = np.arange(t0 + 0.5 * cfg.thrust_grid, t1, cfg.thrust_grid)
+                self.dynamics.append((tid, *(traj.world_design(tg, nu) for nu in (0, 1, 2))))
         present = {b.station for b in self.stations}
         self.biases = [bp for bp in cfg.biases if bp.station in present]
         for b in self.stations:
@@ -602,6 +652,27 @@ class _Problem:
                 wv = fb.whiten[fb.valid].reshape(-1, 3)
                 tt = np.repeat(fb.time[fb.valid], 3)
                 rows.append((fb.target, tt, wv, np.zeros_like(wv), False))
+        for tid, dp, dv, da in self.dynamics:
+            coef = self._coef(beta, tid)
+            c, jp, jv, ja = _thrust_normal(
+                (dp @ coef).reshape(-1, 3) + self.origin[tid],
+                (dv @ coef).reshape(-1, 3),
+                (da @ coef).reshape(-1, 3),
+                self.cfg.gm,
+                jacobian,
+            )
+            sig = self.cfg.thrust_along_velocity
+            res.append(-c.ravel() / sig)
+            tags.append(('thrust', tid, np.ones(c.shape[0], dtype=bool)))
+            if jacobian:
+                jm = (
+                    _row_contract(jp / sig, dp)
+                    + _row_contract(jv / sig, dv)
+                    + _row_contract(ja / sig, da)
+                )
+                jac.append(_shift(jm, self.offsets[tid], self.n))
+                z = np.zeros((c.size, 3))
+                rows.append((-1, np.zeros(c.size), z, z, False))
         if self.biases:
             bvals = beta[self.bias_offset : self.bias_offset + len(self.biases)]
             res.append((self.bias_prior - bvals) / self.bias_sigma)
