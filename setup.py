@@ -28,6 +28,7 @@ console_scripts = [
     'scenario_sim = orbit_tracking.ros.scenario_sim:main',
     'triangulation = orbit_tracking.ros.triangulation_node:main',
     'estimator = orbit_tracking.ros.estimator_node:main',
+    'results = orbit_tracking.ros.results_node:main',
     'orbit-tracking = orbit_tracking.cli:main',
 ]
 

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from orbit_tracking.core.bias_files import DEFAULT_PRIOR_SIGMA, auto_biases, truth_biases
 from orbit_tracking.core.errors import OrbitTrackingError
 from orbit_tracking.core.estimator import Estimate, EstimatorConfig, estimate
 from orbit_tracking.core.fixes import TriangulationPipeline, feed_simulation, fix_series
@@ -38,17 +39,6 @@ BIAS_SCENARIOS: tuple[str, ...] = (
     'seed003_q4_multi',
 )
 
-PRIOR_SIGMA: dict[str, float] = {
-    'range': 10.0,
-    'range_rate': 0.1,
-    'azimuth': 1e-4,
-    'elevation': 1e-4,
-    'los_alpha': 1e-3,
-    'los_beta': 1e-3,
-    'los_theta': 1e-3,
-}
-"""Weak priors [field units] of the declared biases: a few times the expected size."""
-
 EDGE_S = 2.0
 """Seconds trimmed at each end of the span for the trajectory figures: before the first
 and after the last measurement the spline extrapolates (with an honest but huge sigma)."""
@@ -61,19 +51,17 @@ THRUST_SIGMA = 0.05
 
 
 def declare_biases(sc: Scenario, known: bool = False) -> tuple[BiasParameter, ...]:
-    """Every measured field of every station (and a satellite's rotation) as a bias with
-    a weak zero-mean prior; ``known`` holds each at the scenario's true value instead."""
-    out = []
-    for st in sc.stations:
-        names = [*st.fields, *(('los_theta',) if st.kind == 'satellite' else ())]
-        for name in names:
-            truth = float(st.bias.get(name, 0.0))
-            out.append(
-                BiasParameter(
-                    st.id, name, truth if known else 0.0, PRIOR_SIGMA[name], estimate=not known
-                )
-            )
-    return tuple(out)
+    """The ``auto`` declaration for the scenario's stations (every measured field, and a
+    satellite's rotation, with weak zero-mean priors); ``known`` holds each at the
+    scenario's true value instead."""
+    declared = auto_biases({st.id: st.fields for st in sc.stations})
+    if not known:
+        return declared
+    truth = truth_biases(sc)
+    return tuple(
+        dataclasses.replace(b, prior=truth.get((b.station, b.name), 0.0), estimate=False)
+        for b in declared
+    )
 
 
 @dataclass
@@ -144,12 +132,12 @@ def bench_biases(
             sc = dataclasses.replace(base, random_seed=base.random_seed + 1000 * k)
             result = simulate(sc, World(sc))
             obs = _observations(result)
-            truth = {(s.id, n): float(v) for s in sc.stations for n, v in s.bias.items()}
+            truth = truth_biases(sc)
             ids = list(sc.target_ids)
             for variant in VARIANTS:
                 thrust = variant.endswith('thrust along v')
-                if thrust and sc.world_frame != 'eci':
-                    continue
+                if thrust and (sc.world_frame != 'eci' or len(ids) > 1):
+                    continue  # boosters in an inertial frame; several targets need none
                 biases = {
                     'estimated': declare_biases(sc),
                     'ignored': (),
@@ -214,12 +202,13 @@ def bias_tables(benches: Sequence[BiasBench], seeds: int) -> str:
     """Markdown tables of :func:`bench_biases`."""
     lines = [
         f'Whole span solved once per seed ({seeds} seed(s)); trajectory figures exclude '
-        f'{EDGE_S:g} s at each end. "estimated": every measured field of every station '
-        'declared as a bias with a weak prior (range 10 m, range rate 0.1 m/s, angles '
-        '1e-4 rad, line-of-sight offsets and rotation 1e-3); "ignored": no bias modelled; '
-        '"known": biases held at their true values; "thrust along v" (inertial-frame '
-        f'scenarios only) adds the boost constraint with sigma {THRUST_SIGMA} m/s^2. The '
-        'bias table is the "estimated" variant. NEES: mean over samples 2 s apart '
+        f'{EDGE_S:g} s at each end. "estimated": the `auto` declaration, every measured '
+        'field of every station a bias with a weak prior ('
+        + ', '.join(f'{k} {v:g}' for k, v in DEFAULT_PRIOR_SIGMA.items() if k != 'clock')
+        + '); "ignored": no bias modelled; '
+        '"known": biases held at their true values; "thrust along v" (single-target '
+        f'inertial-frame scenarios) adds the boost constraint with sigma {THRUST_SIGMA} '
+        'm/s^2. The bias table is the "estimated" variant. NEES: mean over samples 2 s apart '
         '(3 is ideal).',
         '',
     ]

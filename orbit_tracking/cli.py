@@ -5,7 +5,9 @@ Subcommands::
     orbit-tracking scenarios                          list the scenario files
     orbit-tracking simulate --scenario NAME --out DIR write a scenario to a rosbag2
     orbit-tracking record --out DIR                   record the contract topics from DDS
-    orbit-tracking play BAG [--rate R]                publish a bag's messages over DDS
+    orbit-tracking replay BAG [--rate R] [--loop] [--clock]
+                                                      publish a bag's messages over DDS
+                                                      (alias: play)
     orbit-tracking triangulate BAG --out DIR          fixes.csv from a bag's lines of sight
     orbit-tracking estimate BAG --out DIR             trajectory.csv from a bag, estimated in
                                                       the estimator node's sliding windows
@@ -98,6 +100,8 @@ def _cmd_record(args: argparse.Namespace) -> int:
 
 def _cmd_play(args: argparse.Namespace) -> int:
     import rclpy
+    from rclpy.executors import ExternalShutdownException
+    from rosbags.rosbag2 import ReaderError
 
     from orbit_tracking.ros.player import BagPlayerNode
 
@@ -105,20 +109,27 @@ def _cmd_play(args: argparse.Namespace) -> int:
     node = None
     try:
         node = BagPlayerNode(
-            args.bag, args.rate, args.topics, args.wait_for_subscribers, args.wait_timeout
+            args.bag,
+            args.rate,
+            args.topics,
+            args.wait_for_subscribers,
+            args.wait_timeout,
+            loop=args.loop,
+            clock=args.clock,
         )
-        rclpy.spin_until_future_complete(node, node.done)
+        rclpy.spin_until_future_complete(node, node.done)  # with --loop: until Ctrl-C
         end = time.monotonic() + args.linger  # let reliable readers catch up before leaving
         while time.monotonic() < end:
             rclpy.spin_once(node, timeout_sec=0.05)
-        print(f'played {node.count} messages from {args.bag}')
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except ValueError as exc:
-        print(f'orbit-tracking play: error: {exc}', file=sys.stderr)
+    except (ValueError, ReaderError) as exc:
+        print(f'orbit-tracking {args.command}: error: {exc}', file=sys.stderr)
         return 2
     finally:
         if node is not None:
+            loops = f' ({node.loops} loop(s) restarted)' if node.loops else ''
+            print(f'played {node.count} messages from {args.bag}{loops}', flush=True)
             node.close()
             node.destroy_node()
         rclpy.try_shutdown()
@@ -147,6 +158,7 @@ def _cmd_triangulate(args: argparse.Namespace) -> int:
 def _cmd_estimate(args: argparse.Namespace) -> int:
     import shutil
 
+    from orbit_tracking.core.bias_files import load_bias_declaration
     from orbit_tracking.core.estimator import EstimatorConfig
     from orbit_tracking.core.windows import WindowConfig
     from orbit_tracking.ros.offline import estimate_bag
@@ -157,6 +169,8 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
         print(f'orbit-tracking estimate: error: {exc}', file=sys.stderr)
         return 2
     est = EstimatorConfig(knot_method=args.knot_method, use_telemetry=not args.no_telemetry)
+    # read the declaration before anything is deleted: a bad file is a one-line error
+    biases = load_bias_declaration(args.biases)
     if not Path(args.bag).is_dir():
         raise FileNotFoundError(f'no bag folder {args.bag}')
     out = Path(args.out)
@@ -167,7 +181,7 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
             )
         shutil.rmtree(out)
     t0 = time.monotonic()
-    report = estimate_bag(args.bag, out, est, win, not args.quiet)
+    report = estimate_bag(args.bag, out, est, win, not args.quiet, biases)
     for line in report.lines():
         print(line)
     print(f'wrote {", ".join(str(f) for f in report.files)} ({time.monotonic() - t0:.1f} s)')
@@ -269,21 +283,44 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
-    from orbit_tracking.core.scenario import load_scenario
-    from orbit_tracking.core.simulation import World, simulate
-    from orbit_tracking.report import ReportInputs, build_report
-    from orbit_tracking.ros.bag import bag_custom_data
-
     run = Path(args.run)
-    data = bag_custom_data(run / 'bag')
-    name = data.get('orbit_tracking.scenario')
-    if not name:
-        raise FileNotFoundError(f'{run / "bag"} does not say which scenario it holds')
-    sc = load_scenario(name)
-    fixes = _fixes_from_csv(run / 'triangulation', float(data['orbit_tracking.epoch']))
-    summary = (run / 'triangulation' / 'summary.yaml').read_text().splitlines()
-    path = build_report(ReportInputs(simulate(sc), fixes, summary), run / 'report', World(sc))
-    print(f'wrote {path}')
+    if not run.is_dir():
+        raise FileNotFoundError(f'no folder {run}')
+    est = next((d for d in (run, run / 'estimate') if (d / 'trajectory.csv').is_file()), None)
+    demo = (run / 'bag').is_dir() and (run / 'triangulation' / 'summary.yaml').is_file()
+    if est is None and not demo:
+        raise FileNotFoundError(
+            f'{run} has no trajectory.csv (write one with orbit-tracking estimate BAG --out '
+            f'{run}) and is not a demo run folder (bag/ and triangulation/)'
+        )
+    if demo:  # the demo's Markdown report of the scenario and its triangulation
+        from orbit_tracking.core.scenario import load_scenario
+        from orbit_tracking.core.simulation import World, simulate
+        from orbit_tracking.report import ReportInputs, build_report
+        from orbit_tracking.ros.bag import bag_custom_data
+
+        data = bag_custom_data(run / 'bag')
+        name = data.get('orbit_tracking.scenario')
+        if not name:
+            raise FileNotFoundError(f'{run / "bag"} does not say which scenario it holds')
+        sc = load_scenario(name)
+        fixes = _fixes_from_csv(run / 'triangulation', float(data['orbit_tracking.epoch']))
+        summary = (run / 'triangulation' / 'summary.yaml').read_text().splitlines()
+        path = build_report(ReportInputs(simulate(sc), fixes, summary), run / 'report', World(sc))
+        print(f'wrote {path}')
+    if est is not None:  # report.html of an estimate output folder
+        from orbit_tracking.report import build_html_report, read_output_folder
+        from orbit_tracking.ros.report_inputs import output_world_frame, report_context
+
+        try:
+            folder = read_output_folder(est)
+        except ValueError as exc:
+            raise OrbitTrackingError(str(exc)) from exc
+        ctx, notes = report_context(est, folder.summary, args.bag, args.scenario)
+        for line in notes:
+            print(line)
+        path = build_html_report(folder, args.out, ctx, notes, output_world_frame(est))
+        print(f'wrote {path}')
     return 0
 
 
@@ -334,6 +371,38 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         if args.write_docs:
             write_docs(args.docs, 'estimator', text)
             print(f'updated {args.docs}')
+    if args.suite in ('biases', 'all'):
+        from orbit_tracking.bench_biases import BIAS_SCENARIOS, bench_biases, bias_tables
+
+        t0 = time.monotonic()
+        brows = bench_biases(args.scenarios or BIAS_SCENARIOS, args.seeds, not args.quiet)
+        text = bias_tables(brows, args.seeds) + footer(t0)
+        print(text)
+        if args.write_docs:
+            write_docs(args.docs, 'biases', text)
+            print(f'updated {args.docs}')
+    if args.suite == 'dds':  # live nodes over DDS; not part of 'all'
+        from orbit_tracking.bench_dds import (
+            DDS_RATES,
+            DDS_SCENARIO,
+            DDS_WINDOWS,
+            bench_dds,
+            dds_table,
+        )
+
+        t0 = time.monotonic()
+        scenario = args.scenarios[0] if args.scenarios else DDS_SCENARIO
+        rates = args.rates or DDS_RATES
+        drows = bench_dds(scenario, rates, args.span, progress=not args.quiet)
+        command = (
+            f'orbit-tracking bench --suite dds --rates {" ".join(f"{r:g}" for r in rates)} '
+            f'--span {args.span:g}'
+        )
+        text = dds_table(drows, scenario, args.span, DDS_WINDOWS, time.monotonic() - t0, command)
+        print(text)
+        if args.write_docs:
+            write_docs(args.docs, 'dds', text)
+            print(f'updated {args.docs}')
     return 0
 
 
@@ -382,9 +451,24 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap')
     s.set_defaults(func=_cmd_record)
 
-    s = sub.add_parser('play', help='publish the messages of a bag over DDS (ros2 bag play)')
+    s = sub.add_parser(
+        'replay',
+        aliases=['play'],
+        help='publish the messages of a bag over DDS with their recorded pace (ros2 bag play)',
+    )
     s.add_argument('bag', help='rosbag2 folder')
     s.add_argument('--rate', type=float, default=1.0, help='playback speed factor')
+    s.add_argument(
+        '--loop',
+        action='store_true',
+        help='start again at the beginning after the last message, until Ctrl-C',
+    )
+    s.add_argument(
+        '--clock',
+        action='store_true',
+        help='also publish /clock (rosgraph_msgs/Clock) with the message stamps, for nodes '
+        'run with use_sim_time:=true',
+    )
     s.add_argument('--topics', nargs='*', help='topic glob patterns to play (default all)')
     s.add_argument(
         '--wait-for-subscribers',
@@ -463,6 +547,13 @@ def build_parser() -> argparse.ArgumentParser:
         default='sparse',
         help="knot placement: the seed's sparse selection (default) or a baseline",
     )
+    s.add_argument(
+        '--biases',
+        metavar='FILE|auto',
+        default='',
+        help='estimate station biases: a YAML declaration (config/biases_example.yaml) or '
+        '"auto" (every measured field of every station, weak priors); writes biases.csv',
+    )
     s.add_argument('--force', action='store_true', help='replace an existing output folder')
     s.add_argument('--quiet', action='store_true', help='no progress bars')
     s.set_defaults(func=_cmd_estimate)
@@ -489,15 +580,45 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument('--quiet', action='store_true', help='no progress lines')
     s.add_argument(
         '--suite',
-        choices=('triangulation', 'estimator', 'all'),
+        choices=('triangulation', 'estimator', 'biases', 'all', 'dds'),
         default='all',
-        help='which benchmark to run (default: all)',
+        help='which benchmark to run (default: all; dds, the live nodes over DDS, only '
+        'when asked)',
+    )
+    s.add_argument(
+        '--rates',
+        type=float,
+        nargs='+',
+        help='dds: offered measurement rates [measurements/s] (default 250 500 1000 2000 4000)',
+    )
+    s.add_argument(
+        '--span', type=float, default=30.0, help='dds: data seconds published at each rate'
     )
     s.add_argument('--plots', type=Path, help='folder for the estimator error plots')
     s.set_defaults(func=_cmd_bench)
 
-    s = sub.add_parser('report', help='redraw the report of a demo run folder')
-    s.add_argument('run', help='run folder written by demo')
+    s = sub.add_parser(
+        'report',
+        help='report.html of an estimate output folder (or redraw a demo run report)',
+    )
+    s.add_argument(
+        'run',
+        help='folder written by estimate (trajectory.csv, ...) or by demo (bag/, '
+        'triangulation/; with estimate/ inside, both reports)',
+    )
+    s.add_argument(
+        '--out', default=None, help='folder for report.html and its PNGs (default: the folder)'
+    )
+    s.add_argument(
+        '--bag',
+        default=None,
+        help='the estimated bag, for residuals and truth (default: the one summary.yaml names)',
+    )
+    s.add_argument(
+        '--scenario',
+        default=None,
+        help='scenario name or YAML path to simulate again for truth and measurements',
+    )
     s.set_defaults(func=_cmd_report)
     return p
 

@@ -5,6 +5,7 @@ with a 6 s incomplete segment (12-18 s, only cw03 and cw07 measure)."""
 from __future__ import annotations
 
 import math
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -239,6 +240,7 @@ def test_estimator_node_solves_windows_from_a_live_pass_close_to_truth(
     from orbit_tracking.ros.conversions import (
         TimeBase,
         cloud_to_window_states,
+        msg_to_window_residuals,
         odometry_to_target_state,
     )
 
@@ -274,6 +276,10 @@ def test_estimator_node_solves_windows_from_a_live_pass_close_to_truth(
         Odometry, f'{ns}/truth/state', truth.append, qos.MEASUREMENTS_SUB
     )
     rclpy_node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, qos.DIAGNOSTICS)
+    residuals: list[DiagnosticArray] = []
+    rclpy_node.create_subscription(
+        DiagnosticArray, f'{ns}/estimator/window_residuals', residuals.append, qos.STATE_STREAM
+    )
     # The simulator waits for two readers of every measurement topic, the node and us, so
     # that it starts streaming only once it has discovered this process: its truth/state
     # is volatile and what it publishes before that is lost to us.
@@ -322,6 +328,18 @@ def test_estimator_node_solves_windows_from_a_live_pass_close_to_truth(
     got = [cloud_to_window_states(m, tb) for m in windows]
     assert [round(w.t0, 6) for w in got] == [0.0, 14.0]
     assert got[0].time[-1] == pytest.approx(20.0) and got[1].time[-1] == pytest.approx(30.0)
+    assert [w.t1 for w in got] == pytest.approx([20.0, 30.0], abs=1e-9)  # window_length
+    # per-window residual statistics: the second window counts only the rows after the
+    # first one's end, so over both every measurement row counts once
+    spin_until(rclpy_node, lambda: len(residuals) >= 2, 5, 'the window residuals')
+    res = [msg_to_window_residuals(m, tb) for m in residuals]
+    assert [r[0].counted_after for r in res] == [None, pytest.approx(20.0)]
+    assert {r.stats.station for r in res[0]} == {st.id for st in load_scenario(scenario).stations}
+    rows = Counter()
+    for r in (*res[0], *res[1]):
+        rows[r.stats.station] += r.stats.rows
+        assert np.all((r.stats.rms > 0.5) & (r.stats.rms < 2.0)), r
+    assert sum(rows.values()) == 6480  # = every point of the pass (one target)
     assert sum(points) == 6480  # every point of the pass reached this process too
     assert all(w.world_frame == 'earth' and np.all(w.target_id == 0) for w in got)
     assert np.allclose(got[0].time * 10.0, np.round(got[0].time * 10.0), atol=1e-6)

@@ -26,6 +26,7 @@ __all__ = [
     'feed_simulation',
     'fix_series',
     'format_stamp',
+    'parse_stamp',
     'read_fixes_csv',
     'write_fixes_csv',
 ]
@@ -111,6 +112,25 @@ def format_stamp(ref_ns: int, t: float) -> str:
     sign = '-' if ns < 0 else ''
     ns = abs(ns)
     return f'{sign}{ns // 1_000_000_000}.{ns % 1_000_000_000:09d}'
+
+
+def parse_stamp(text: str) -> int:
+    """Exact integer nanoseconds of a decimal-seconds stamp (as written by
+    :func:`format_stamp`).
+
+    Raises
+    ------
+    ValueError
+        Not a decimal number, or more than nine decimals.
+    """
+    s = text.strip()
+    sign = -1 if s.startswith('-') else 1
+    whole, _, frac = s.lstrip('+-').partition('.')
+    if len(frac) > 9:
+        raise ValueError(f'stamp {text!r} has more than nine decimals')
+    if not (whole or frac) or not (whole or '0').isdigit() or not (frac or '0').isdigit():
+        raise ValueError(f'stamp {text!r} is not a decimal number of seconds')
+    return sign * (int(whole or '0') * 1_000_000_000 + int((frac or '0').ljust(9, '0')))
 
 
 def feed_simulation(sink: Aligner | TriangulationPipeline, result: SimulationResult) -> None:

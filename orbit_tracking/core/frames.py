@@ -34,6 +34,7 @@ __all__ = [
     'observation_rotation',
     'platform_rotation',
     'quaternion_to_matrix',
+    'states_to_local',
 ]
 
 FloatArray = NDArray[np.float64]
@@ -162,6 +163,45 @@ def launch_rotation(lat: float, lon: float, azimuth: float) -> FloatArray:
     y = up
     z = np.cross(x, y)
     return np.stack([x, y, z], axis=-1)
+
+
+def states_to_local(
+    state: ArrayLike, covariance: ArrayLike, origin: ArrayLike, rotation: ArrayLike
+) -> tuple[FloatArray, FloatArray]:
+    """World-frame states and covariances in a local frame fixed in the world frame.
+
+    ``p_L = R^T (p - o)``, ``v_L = R^T v`` and ``P_L = T P T^T`` with
+    ``T = diag(R^T, R^T)``, where ``R`` takes local vectors into the world frame (e.g.
+    :func:`launch_rotation` for the launch frame, whose velocities are then relative to
+    the rotating Earth like the ECEF ones).
+
+    Parameters
+    ----------
+    state : array_like, shape (m, 6)
+        Position [m] and velocity [m/s] in the world frame.
+    covariance : array_like, shape (m, 6, 6)
+    origin : array_like, shape (3,)
+        Local origin in the world frame [m].
+    rotation : array_like, shape (3, 3)
+
+    Returns
+    -------
+    state : ndarray, shape (m, 6)
+    covariance : ndarray, shape (m, 6, 6)
+    """
+    x = np.atleast_2d(_as_float(state))
+    c = _as_float(covariance).reshape(-1, 6, 6)
+    o = _as_float(origin)
+    r = _as_float(rotation)
+    if x.shape[1:] != (6,) or c.shape[0] != x.shape[0] or o.shape != (3,) or r.shape != (3, 3):
+        raise ValueError(
+            f'states_to_local needs state (m, 6), covariance (m, 6, 6), origin (3,) and '
+            f'rotation (3, 3); got {x.shape}, {np.shape(covariance)}, {o.shape}, {r.shape}'
+        )
+    t = np.zeros((6, 6))
+    t[:3, :3] = t[3:, 3:] = r.T
+    local = np.hstack([(x[:, :3] - o) @ r, x[:, 3:] @ r])
+    return local, t @ c @ t.T
 
 
 def observation_rotation(position: ArrayLike) -> FloatArray:

@@ -26,6 +26,7 @@ import csv
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -34,7 +35,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from orbit_tracking.core.errors import OrbitTrackingError
 from orbit_tracking.core.estimator import Estimate, EstimatorConfig, TargetSolution, estimate
-from orbit_tracking.core.fixes import format_stamp
+from orbit_tracking.core.fixes import format_stamp, parse_stamp
 from orbit_tracking.core.observations import Observations
 
 __all__ = [
@@ -42,6 +43,8 @@ __all__ = [
     'Span',
     'WindowConfig',
     'WindowScheduler',
+    'blend',
+    'handover_span',
     'handover_weights',
     'output_times',
     'plan_windows',
@@ -274,8 +277,10 @@ def output_times(t0: float, t1: float, step: float) -> FloatArray:
     return np.arange(k0, k1 + 1, dtype=np.float64) * step
 
 
-def _handover(a: Span, b: Span) -> Span | None:
-    """Middle half of the overlap of consecutive spans a, b (None if they do not overlap)."""
+def handover_span(a: Span, b: Span) -> Span | None:
+    """Middle half ``[s + d/4, e - d/4]`` of the overlap ``[s, e]`` of consecutive spans
+    ``a``, ``b`` (``s = b[0]``, ``e = min(a[1], b[1])``, ``d = e - s``): where the output
+    hands over from ``a`` to ``b``. None if they do not overlap."""
     s, e = b[0], min(a[1], b[1])
     if not e > s:
         return None
@@ -297,11 +302,11 @@ def handover_weights(spans: Sequence[Span], t: ArrayLike) -> FloatArray:
     for k, (a0, a1) in enumerate(spans):
         inside[k] = (tt >= a0 - 1e-9) & (tt <= a1 + 1e-9)
         wk = np.ones(tt.size)
-        up = _handover(spans[k - 1], spans[k]) if k > 0 else None
+        up = handover_span(spans[k - 1], spans[k]) if k > 0 else None
         if up is not None:
             u0, u1 = up
             wk *= np.clip((tt - u0) / max(u1 - u0, 1e-12), 0.0, 1.0)
-        down = _handover(spans[k], spans[k + 1]) if k + 1 < n else None
+        down = handover_span(spans[k], spans[k + 1]) if k + 1 < n else None
         if down is not None:
             d0, d1 = down
             wk *= np.clip((d1 - tt) / max(d1 - d0, 1e-12), 0.0, 1.0)
@@ -347,19 +352,64 @@ def stitch(
         (e.targets[target_id] for e in estimates if target_id in e.targets),
         key=lambda s: (s.t0, s.t1),
     )
+    # evaluate strictly inside the spline span (rounding at the ends)
+    return blend(
+        [(s.t0, s.t1) for s in sols],
+        [partial(_clipped_states, s) for s in sols],
+        times,
+    )
+
+
+def _clipped_states(sol: TargetSolution, t: FloatArray) -> tuple[FloatArray, FloatArray]:
+    return sol.states(np.clip(t, sol.t0, sol.t1))
+
+
+def blend(
+    spans: Sequence[Span],
+    states: Sequence[Callable[[FloatArray], tuple[FloatArray, FloatArray]]],
+    times: ArrayLike,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Blend window solutions with the hand-over weights (:func:`handover_weights`).
+
+    The blend of :func:`stitch`, for solutions given as functions: the offline tool
+    evaluates spline solutions, the live results node looks up the sampled states of
+    ``estimator/window_states``.
+
+    Parameters
+    ----------
+    spans : sequence of Span
+        Window spans ``(t0, t1)`` [s], sorted by start.
+    states : sequence of callable
+        ``states[k](t)`` gives window ``k``'s states (m, 6) and covariances (m, 6, 6) at
+        times ``t`` (m,) inside its span; only called where its weight is positive.
+    times : array_like, shape (m,)
+        Requested times [s]; those no span covers are left out.
+
+    Returns
+    -------
+    times : ndarray, shape (k,)
+        The requested times covered by a span.
+    x : ndarray, shape (k, 6)
+        ``sum w_k x_k``: position [m] and velocity [m/s] (the blended velocity leaves out
+        the tiny ``(x_a - x_b) dw/dt`` term).
+    cov : ndarray, shape (k, 6, 6)
+        ``sum w_k P_k``.
+    """
+    if len(states) != len(spans):
+        raise ValueError(
+            f'blend needs one states function per span; got {len(states)} for {len(spans)} spans'
+        )
     tt = np.atleast_1d(np.asarray(times, dtype=np.float64))
-    spans = [(s.t0, s.t1) for s in sols]
     w = handover_weights(spans, tt)
     covered = w.sum(axis=0) > 0.0
     tt, w = tt[covered], w[:, covered]
     x = np.zeros((tt.size, 6))
     cov = np.zeros((tt.size, 6, 6))
-    for k, sol in enumerate(sols):
+    for k, fk in enumerate(states):
         use = w[k] > 0.0
         if not np.any(use):
             continue
-        # evaluate strictly inside the spline span (rounding at the ends)
-        xk, pk = sol.states(np.clip(tt[use], sol.t0, sol.t1))
+        xk, pk = fk(tt[use])
         x[use] += w[k, use, None] * xk
         cov[use] += w[k, use, None, None] * pk
     return tt, x, cov
@@ -430,17 +480,7 @@ def read_trajectory_csv(path: str | Path) -> dict[str, NDArray[Any]]:
     out: dict[str, NDArray[Any]] = {
         k: np.array([float(r[j]) for r in rows]) for j, k in enumerate(TRAJECTORY_CSV_COLUMNS)
     }
-    out['stamp_ns'] = np.array([_parse_stamp_ns(r[0]) for r in rows], dtype=np.int64)
+    out['stamp_ns'] = np.array([parse_stamp(r[0]) for r in rows], dtype=np.int64)
     out['state'] = np.column_stack([out[k] for k in TRAJECTORY_CSV_COLUMNS[1:7]])
     out['sigma'] = np.column_stack([out[k] for k in TRAJECTORY_CSV_COLUMNS[7:]])
     return out
-
-
-def _parse_stamp_ns(text: str) -> int:
-    """Exact nanoseconds of a decimal-seconds stamp (as written by ``format_stamp``)."""
-    s = text.strip()
-    sign = -1 if s.startswith('-') else 1
-    whole, _, frac = s.lstrip('+-').partition('.')
-    if len(frac) > 9:
-        raise ValueError(f'stamp {text!r} has more than nine decimals')
-    return sign * (int(whole or '0') * 1_000_000_000 + int((frac or '0').ljust(9, '0')))

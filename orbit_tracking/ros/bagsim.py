@@ -8,6 +8,7 @@ from pathlib import Path
 import yaml
 from tqdm import tqdm
 
+from orbit_tracking.core.bias_files import truth_biases
 from orbit_tracking.core.scenario import Scenario
 from orbit_tracking.core.simulation import simulate
 from orbit_tracking.core.stream import EventStream
@@ -30,8 +31,9 @@ def simulate_to_bag(
     """Write a scenario's measurements, station states, telemetry and (optionally) truth
     to a new bag folder ``out``. Returns the number of messages written.
 
-    The bag's ``custom_data`` keeps the scenario name, epoch and the validated file, so
-    evaluation tools find the truth and the gaps without any other file.
+    The bag's ``custom_data`` keeps the scenario name, epoch, world frame, gaps and (with
+    ``truth``) the simulated station biases (``orbit_tracking.biases``, YAML: station ->
+    bias name -> value), so evaluation tools find the truth without any other file.
     """
     result = simulate(scenario)
     stream = EventStream(result, batch_period=batch_period, truth=truth)
@@ -44,6 +46,11 @@ def simulate_to_bag(
         bag.set_custom_data(
             'orbit_tracking.gaps', yaml.safe_dump([list(g) for g in scenario.gaps])
         )
+        if truth:  # the simulated systematic errors, so that estimated biases can be scored
+            biases: dict[str, dict[str, float]] = {}
+            for (sid, name), value in truth_biases(scenario).items():
+                biases.setdefault(sid, {})[name] = value
+            bag.set_custom_data('orbit_tracking.biases', yaml.safe_dump(biases))
         for ev in tqdm(
             stream, total=len(stream), unit='msg', disable=not progress, desc=scenario.name
         ):

@@ -8,7 +8,11 @@ Layouts follow ``docs/CONTRACT.md``:
 * station states, telemetry, truth and fitted states: ``nav_msgs/Odometry``;
 * triangulation fixes: ``geometry_msgs/PoseWithCovarianceStamped``;
 * a window's fitted states (internal, ``estimator/window_states``): ``PointCloud2`` with
-  :data:`WINDOW_STATE_FIELDS`.
+  :data:`WINDOW_STATE_FIELDS`;
+* a window's residual statistics (internal, ``estimator/window_residuals``):
+  ``diagnostic_msgs/DiagnosticArray``, one status per station;
+* a window's station biases (``trajectory/biases``): ``diagnostic_msgs/DiagnosticArray``,
+  one status per station with ``<name>_bias`` and ``<name>_bias_sigma`` keys.
 
 Times: the core computes in float seconds relative to a :class:`TimeBase` (an integer
 number of nanoseconds, by default the scenario epoch), so that float64 keeps
@@ -17,8 +21,10 @@ sub-nanosecond resolution across a long pass.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from builtin_interfaces.msg import Time
@@ -30,7 +36,13 @@ from sensor_msgs.msg import PointCloud2, PointField
 
 from orbit_tracking.core import frames
 from orbit_tracking.core.errors import MeasurementError
+from orbit_tracking.core.fixes import format_stamp, parse_stamp
 from orbit_tracking.core.measurements import FIELDS, sigma_field
+from orbit_tracking.core.residuals import ResidualStats
+from orbit_tracking.core.systematic import ESTIMABLE_BIASES
+
+if TYPE_CHECKING:  # the estimator is heavy to import, and only the bias messages need it
+    from orbit_tracking.core.estimator import BiasEstimate
 
 __all__ = [
     'MeasurementBatch',
@@ -38,14 +50,18 @@ __all__ = [
     'TargetStateSample',
     'TimeBase',
     'WINDOW_STATE_FIELDS',
+    'WindowResiduals',
     'WindowStates',
+    'biases_to_diagnostics',
     'cloud_to_measurements',
     'cloud_to_window_states',
     'diagnostic_array',
     'diagnostic_status',
+    'diagnostics_to_biases',
     'fix_to_msg',
     'measurements_to_cloud',
     'msg_to_fix',
+    'msg_to_window_residuals',
     'odometry_to_station_state',
     'odometry_to_target_state',
     'stamp_ns',
@@ -53,6 +69,7 @@ __all__ = [
     'target_frame_id',
     'target_id_from_frame',
     'target_state_to_odometry',
+    'window_residuals_to_msg',
     'window_states_to_cloud',
 ]
 
@@ -468,6 +485,9 @@ class WindowStates:
     world_frame : str
     t0 : float
         Window start (``header.stamp``) in TimeBase seconds.
+    t1 : float
+        Window end [s]: ``t0 + window_length`` when the message has that field, else its
+        latest state time.
     time : ndarray, shape (m,)
         Time of each state [s] (TimeBase).
     target_id : ndarray of uint32, shape (m,)
@@ -482,13 +502,18 @@ class WindowStates:
     target_id: NDArray[np.uint32]
     state: FloatArray
     covariance: FloatArray
+    t1: float
 
 
-def _window_dtype() -> np.dtype:
+def _window_dtype(with_length: bool = False) -> np.dtype:
     names = [*WINDOW_STATE_FIELDS, 'target_id']
     formats = ['<f8'] * len(WINDOW_STATE_FIELDS) + ['<u4']
     offsets = [8 * i for i in range(len(names))]
-    itemsize = (offsets[-1] + 4 + 7) // 8 * 8
+    if with_length:
+        names.append('window_length')
+        formats.append('<f8')
+        offsets.append(offsets[-1] + 8)  # after target_id, 8-byte aligned
+    itemsize = (offsets[-1] + (8 if with_length else 4) + 7) // 8 * 8
     return np.dtype({'names': names, 'formats': formats, 'offsets': offsets, 'itemsize': itemsize})
 
 
@@ -500,6 +525,7 @@ def window_states_to_cloud(
     state: ArrayLike,
     covariance: ArrayLike,
     timebase: TimeBase,
+    t1: float | None = None,
 ) -> PointCloud2:
     """Pack one window's fitted states into ``estimator/window_states``.
 
@@ -513,6 +539,10 @@ def window_states_to_cloud(
     target_id : int or ndarray of uint32, shape (m,)
     state : ndarray, shape (m, 6)
     covariance : ndarray, shape (m, 6, 6)
+    t1 : float, optional
+        Window end [s]; given, it is carried in a ``window_length`` field (``t1 - t0``,
+        FLOAT64, after ``target_id``) so that the results node hands over between windows
+        exactly where the offline tool does.
 
     Raises
     ------
@@ -532,10 +562,14 @@ def window_states_to_cloud(
         )
     if not (np.all(np.isfinite(t)) and np.all(np.isfinite(x)) and np.all(np.isfinite(c))):
         raise ValueError('window states must be finite')
-    dtype = _window_dtype()
+    if t1 is not None and not t1 > t0:
+        raise ValueError(f'window end must lie after its start; got [{t0}, {t1}]')
+    dtype = _window_dtype(with_length=t1 is not None)
     arr = np.zeros(m, dtype=dtype)
     t0_ns = timebase.to_ns(t0)
     arr['time_offset'] = t - (t0_ns - timebase.ref_ns) * 1e-9
+    if t1 is not None:
+        arr['window_length'] = t1 - (t0_ns - timebase.ref_ns) * 1e-9
     for j, name in enumerate(('x', 'y', 'z', 'vx', 'vy', 'vz')):
         arr[name] = x[:, j]
     upper = c[:, _UPPER[0], _UPPER[1]]
@@ -566,14 +600,16 @@ def cloud_to_window_states(msg: PointCloud2, timebase: TimeBase) -> WindowStates
     ------
     ValueError
         A missing field or one of the wrong datatype or count, data shorter than
-        ``width * height * point_step``, non-finite values, or a covariance with a negative
-        variance.
+        ``width * height * point_step``, non-finite values, a covariance with a negative
+        variance, or a ``window_length`` that is not one positive value.
     """
     by_name = {f.name: f for f in msg.fields}
     names = [*WINDOW_STATE_FIELDS, 'target_id']
     missing = [n for n in names if n not in by_name]
     if missing:
         raise ValueError(f'window states message lacks field(s) {missing}')
+    if 'window_length' in by_name:
+        names.append('window_length')
     for n in names:
         f = by_name[n]
         want = _dt(n)
@@ -612,18 +648,142 @@ def cloud_to_window_states(msg: PointCloud2, timebase: TimeBase) -> WindowStates
         raise ValueError('window states message holds non-finite values')
     if np.any(np.diagonal(c, axis1=1, axis2=2) < 0.0):
         raise ValueError('window states message holds a negative variance')
+    time = t0 + off
+    if 'window_length' in names:
+        length = arr['window_length'].astype(np.float64)
+        if m and not (
+            np.all(np.isfinite(length)) and np.all(length == length[0]) and length[0] > 0.0
+        ):
+            raise ValueError('window_length must be one positive value for every point')
+        t1 = t0 + float(length[0]) if m else t0
+    else:
+        t1 = float(time.max()) if m else t0
     return WindowStates(
         msg.header.frame_id,
         t0,
-        t0 + off,
+        time,
         arr['target_id'].astype(np.uint32),
         x,
         c,
+        t1,
     )
 
 
 def _size(name: str) -> int:
     return 4 if name == 'target_id' else 8
+
+
+@dataclass(frozen=True)
+class WindowResiduals:
+    """One station's status of ``estimator/window_residuals``, decoded.
+
+    Attributes
+    ----------
+    t0, t1 : float
+        Window span [s] (TimeBase).
+    counted_after : float or None
+        The statistics count the window's rows after this time [s] (the previous window's
+        end); None: every row of the window.
+    stats : ResidualStats
+    """
+
+    t0: float
+    t1: float
+    counted_after: float | None
+    stats: ResidualStats
+
+
+def window_residuals_to_msg(
+    stats: Mapping[str, ResidualStats],
+    t0: float,
+    t1: float,
+    counted_after: float | None,
+    timebase: TimeBase,
+) -> DiagnosticArray:
+    """``estimator/window_residuals``: one ``DiagnosticStatus`` per station (``name`` and
+    ``hardware_id`` = station id) with the window's whitened-residual statistics.
+
+    ``header.stamp`` is the window start. Keys: ``window_start``, ``window_end`` and
+    ``counted_after`` (stamps in decimal seconds, ``counted_after`` empty when every row of
+    the window counts), ``rows``, ``rejected``, ``not_measured``, and per field
+    ``<field>_count``, ``<field>_mean``, ``<field>_rms``, ``<field>_rejected``.
+    """
+    ref = timebase.ref_ns
+    statuses = []
+    for sid, st in sorted(stats.items()):
+        values: dict[str, object] = {
+            'window_start': format_stamp(ref, t0),
+            'window_end': format_stamp(ref, t1),
+            'counted_after': '' if counted_after is None else format_stamp(ref, counted_after),
+            'rows': st.rows,
+            'rejected': int(st.rejected.sum()),
+            'not_measured': st.not_measured,
+        }
+        for j, f in enumerate(st.fields):
+            values[f'{f}_count'] = int(st.count[j])
+            values[f'{f}_mean'] = float(st.mean[j])
+            values[f'{f}_rms'] = float(st.rms[j])
+            values[f'{f}_rejected'] = int(st.rejected[j])
+        text = ', '.join(f'{f} {r:.2f}' for f, r in zip(st.fields, st.rms, strict=True))
+        statuses.append(
+            diagnostic_status(
+                sid,
+                DiagnosticStatus.OK,
+                f'{st.rows} rows, {int(st.rejected.sum())} values rejected; whitened RMS {text}',
+                values,
+                hardware_id=sid,
+            )
+        )
+    return diagnostic_array(timebase.to_stamp(t0), statuses)
+
+
+def msg_to_window_residuals(msg: DiagnosticArray, timebase: TimeBase) -> list[WindowResiduals]:
+    """Decode ``estimator/window_residuals``.
+
+    Raises
+    ------
+    ValueError
+        A status without a station name or a required key, an unreadable number, a
+        window whose end is not after its start, or statuses of different windows.
+    """
+    out = []
+    for st in msg.status:
+        sid = st.name
+        if not sid:
+            raise ValueError('window residuals status has an empty name (station id)')
+        kv = {k.key: k.value for k in st.values}
+        try:
+            ref = timebase.ref_ns
+            t0 = (parse_stamp(kv['window_start']) - ref) * 1e-9
+            t1 = (parse_stamp(kv['window_end']) - ref) * 1e-9
+            after_text = kv.get('counted_after', '')
+            after = (parse_stamp(after_text) - ref) * 1e-9 if after_text else None
+            fields = tuple(k[: -len('_count')] for k in kv if k.endswith('_count'))
+            count = {f: int(kv[f'{f}_count']) for f in fields}
+            mean = {f: float(kv[f'{f}_mean']) for f in fields}
+            rms = {f: float(kv[f'{f}_rms']) for f in fields}
+            rejected = {f: int(kv.get(f'{f}_rejected', '0')) for f in fields}
+            rows, not_measured = int(kv['rows']), int(kv.get('not_measured', '0'))
+        except KeyError as exc:
+            raise ValueError(f'window residuals of station {sid!r} lack key {exc}') from None
+        if not t1 > t0:
+            raise ValueError(f'window residuals of station {sid!r}: window end before its start')
+        bad = [
+            f
+            for f in fields
+            if count[f] < 0
+            or rejected[f] < 0
+            or (count[f] and not (math.isfinite(mean[f]) and math.isfinite(rms[f])))
+        ]
+        if bad or rows < 0 or not_measured < 0:
+            raise ValueError(f'window residuals of station {sid!r}: invalid values for {bad}')
+        stats = ResidualStats.from_moments(
+            sid, fields, rows, count, mean, rms, rejected, not_measured
+        )
+        out.append(WindowResiduals(t0, t1, after, stats))
+    if len({(w.t0, w.t1) for w in out}) > 1:
+        raise ValueError('window residuals message mixes statuses of different windows')
+    return out
 
 
 def diagnostic_status(
@@ -644,6 +804,101 @@ def diagnostic_array(stamp: Time, statuses: Sequence[DiagnosticStatus]) -> Diagn
     arr.header.stamp = stamp
     arr.status = list(statuses)
     return arr
+
+
+_BIAS_SUFFIXES = ('bias', 'bias_sigma', 'bias_prior', 'bias_prior_sigma', 'bias_status')
+
+
+def _bias_warns(status: str) -> bool:
+    """An unobservable bias (held at its prior) or one that ended on a bound."""
+    return status.startswith('unobservable') or ' bound' in status
+
+
+def biases_to_diagnostics(
+    biases: Sequence[BiasEstimate], t0: float, t1: float, timebase: TimeBase
+) -> DiagnosticArray:
+    """``trajectory/biases``: one window's station biases as a ``DiagnosticArray``.
+
+    One ``DiagnosticStatus`` per station (in order of first appearance), ``name`` =
+    ``hardware_id`` = station id, with the ``KeyValue``s ``<name>_bias``,
+    ``<name>_bias_sigma``, ``<name>_bias_prior``, ``<name>_bias_prior_sigma`` (numbers
+    written exactly, ``repr``) and ``<name>_bias_status`` per bias, then ``window_start``
+    and ``window_end`` (stamps in decimal seconds). Level WARN when a bias of the station
+    is unobservable (held at its prior) or ended on a bound, else OK.
+
+    Parameters
+    ----------
+    biases : sequence of BiasEstimate
+        An estimate's ``biases``.
+    t0, t1 : float
+        The window [TimeBase s]; ``header.stamp`` is the stamp of ``t1``.
+    timebase : TimeBase
+    """
+    per_station: dict[str, list[BiasEstimate]] = {}
+    for b in biases:
+        per_station.setdefault(b.station, []).append(b)
+    statuses = []
+    window = {
+        'window_start': format_stamp(timebase.ref_ns, t0),
+        'window_end': format_stamp(timebase.ref_ns, t1),
+    }
+    for sid, bs in per_station.items():
+        values: dict[str, object] = {}
+        for b in bs:
+            values[f'{b.name}_bias'] = repr(float(b.value))
+            values[f'{b.name}_bias_sigma'] = repr(float(b.sigma))
+            values[f'{b.name}_bias_prior'] = repr(float(b.prior))
+            values[f'{b.name}_bias_prior_sigma'] = repr(float(b.prior_sigma))
+            values[f'{b.name}_bias_status'] = b.status
+        values.update(window)
+        odd = [f'{b.name}: {b.status}' for b in bs if _bias_warns(b.status)]
+        level = DiagnosticStatus.WARN if odd else DiagnosticStatus.OK
+        message = '; '.join(odd) if odd else ', '.join(f'{b.name} {b.status}' for b in bs)
+        statuses.append(diagnostic_status(sid, level, message, values, hardware_id=sid))
+    return diagnostic_array(timebase.to_stamp(t1), statuses)
+
+
+def diagnostics_to_biases(msg: DiagnosticArray) -> tuple[BiasEstimate, ...]:
+    """The biases of a ``trajectory/biases`` message (inverse of
+    :func:`biases_to_diagnostics`).
+
+    The station is a status's ``hardware_id`` (its ``name`` if empty); a bias is every
+    ``<name>_bias`` key of a known bias name. Missing ``_bias_prior`` /
+    ``_bias_prior_sigma`` read as NaN, a missing ``_bias_status`` as ``''``; other keys
+    are ignored.
+
+    Raises
+    ------
+    ValueError
+        A ``<name>_bias`` without its ``<name>_bias_sigma``, or a value that is not a
+        number.
+    """
+    from orbit_tracking.core.estimator import BiasEstimate
+
+    out = []
+    for st in msg.status:
+        sid = st.hardware_id or st.name
+        kv = {k.key: k.value for k in st.values}
+        for name in ESTIMABLE_BIASES:
+            if f'{name}_bias' not in kv:
+                continue
+            if f'{name}_bias_sigma' not in kv:
+                raise ValueError(f'station {sid}: {name}_bias without {name}_bias_sigma')
+            try:
+                value, sigma, prior, prior_sigma = (
+                    float(kv.get(f'{name}_{suffix}', 'nan')) for suffix in _BIAS_SUFFIXES[:4]
+                )
+            except ValueError:
+                raise ValueError(
+                    f'station {sid}: {name} bias values must be numbers; got '
+                    f'{[kv.get(f"{name}_{s}") for s in _BIAS_SUFFIXES[:4]]}'
+                ) from None
+            out.append(
+                BiasEstimate(
+                    sid, name, value, sigma, prior, prior_sigma, kv.get(f'{name}_bias_status', '')
+                )
+            )
+    return tuple(out)
 
 
 def _fmt(v: object) -> str:

@@ -10,7 +10,10 @@ seconds (end of the stream). Consecutive windows overlap by ``window_overlap`` s
 each starts from the previous solution.
 
 Publishes each window's fitted states with covariance on ``estimator/window_states``
-(``sensor_msgs/PointCloud2``, internal: see docs/CONTRACT.md) and ``/diagnostics``.
+(``sensor_msgs/PointCloud2``, internal: see docs/CONTRACT.md) and ``/diagnostics``. With
+station biases declared (``bias_file``: ``auto`` or a YAML file) they are estimated in every
+window and published on ``trajectory/biases`` (``diagnostic_msgs/DiagnosticArray``,
+transient local, one status per station).
 
 Example::
 
@@ -23,6 +26,7 @@ import math
 import time
 import traceback
 from collections import Counter
+from dataclasses import replace
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
@@ -32,6 +36,7 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
+from orbit_tracking.core.bias_files import load_bias_declaration, station_fields
 from orbit_tracking.core.buffer import ObservationBuffer
 from orbit_tracking.core.errors import OrbitTrackingError
 from orbit_tracking.core.estimator import (
@@ -43,17 +48,21 @@ from orbit_tracking.core.estimator import (
 )
 from orbit_tracking.core.fixes import format_stamp
 from orbit_tracking.core.knots import KnotConfig
+from orbit_tracking.core.observations import Observations
+from orbit_tracking.core.residuals import window_residual_stats
 from orbit_tracking.core.windows import Span, WindowConfig, WindowScheduler, output_times
 from orbit_tracking.ros import qos
 from orbit_tracking.ros.conversions import (
     MeasurementBatch,
     StationStateSample,
     TimeBase,
+    biases_to_diagnostics,
     diagnostic_array,
     diagnostic_status,
     msg_to_fix,
     odometry_to_target_state,
     stamp_ns,
+    window_residuals_to_msg,
     window_states_to_cloud,
 )
 from orbit_tracking.ros.parameters import declare
@@ -240,6 +249,19 @@ class EstimatorNode(StationInputs):
             ),
             segments=segments,
         )
+        # resolved per window against the stations in it (what 'auto' needs)
+        self.bias_declaration = load_bias_declaration(
+            declare(
+                self,
+                'bias_file',
+                '',
+                'Station biases to estimate with the trajectory: "" = none, "auto" = every '
+                'measured field of every station (weak priors), else a YAML declaration file '
+                '(see config/biases_example.yaml).',
+                read_only=True,
+            )
+        )
+        self.bias_notes: set[str] = set()
         self.flush_after = declare(
             self,
             'flush_after',
@@ -272,6 +294,11 @@ class EstimatorNode(StationInputs):
         self.window_pub = self.create_publisher(
             PointCloud2, 'estimator/window_states', qos.STATE_STREAM
         )
+        self.residual_pub = self.create_publisher(
+            DiagnosticArray, 'estimator/window_residuals', qos.STATE_STREAM
+        )
+        self.residuals_after: float | None = None  # end of the last window reported
+        self.bias_pub = self.create_publisher(DiagnosticArray, 'trajectory/biases', qos.LATCHED)
         self.diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', qos.DIAGNOSTICS)
         self.create_subscription(
             Odometry, 'telemetry/state', self._on_telemetry, qos.MEASUREMENTS_SUB
@@ -312,6 +339,8 @@ class EstimatorNode(StationInputs):
 
     def _on_telemetry(self, msg: Odometry) -> None:
         tb = self._timebase(stamp_ns(msg.header.stamp))
+        if not self._in_time('telemetry', stamp_ns(msg.header.stamp)):
+            return
         try:
             s = odometry_to_target_state(msg, tb)
             if self.target_id >= 0 and s.target_id != self.target_id:
@@ -330,6 +359,8 @@ class EstimatorNode(StationInputs):
 
     def _on_fix(self, msg: PoseWithCovarianceStamped) -> None:
         tb = self._timebase(stamp_ns(msg.header.stamp))
+        if not self._in_time('fixes', stamp_ns(msg.header.stamp)):
+            return
         t, p, c = msg_to_fix(msg, tb)
         try:
             self.buffer.add_fix(max(self.target_id, 0), t, p, c)
@@ -362,6 +393,19 @@ class EstimatorNode(StationInputs):
                     'window(s) up to the newest stamp'
                 )
 
+    def _on_time_reset(self) -> str:
+        """Time went back (see StationInputs): solve what is buffered as at the end of a
+        stream, then start with an empty buffer and no previous window; counters carry on."""
+        spans = self._solve_due(final=True)
+        counts = self.buffer.counts
+        self.buffer = ObservationBuffer()
+        self.buffer.counts.update(counts)
+        self.scheduler = WindowScheduler(self.win_cfg)
+        self.previous = {}
+        self.residuals_after = None
+        self.flushed = True
+        return f'{len(spans)} window(s) solved up to the old newest stamp'
+
     def _solve_due(self, final: bool) -> list[tuple[Span, bool]]:
         """Solve every window that is due (all there is with ``final``)."""
         out: list[tuple[Span, bool]] = []
@@ -385,8 +429,11 @@ class EstimatorNode(StationInputs):
         withheld = Counter(self.buffer.withheld)
         ids = None if self.target_id < 0 else [self.target_id]
         try:
-            est = estimate(obs, t0, t1, self.est_cfg, ids, self.previous or None)
+            cfg = self._window_config(obs)
+            est = estimate(obs, t0, t1, cfg, ids, self.previous or None)
             self._publish_window(est, tb)
+            self._publish_biases(est, tb)
+            self._publish_residuals(est, obs, tb)
         except OrbitTrackingError as exc:
             return self._failed(span, wall, f'{type(exc).__name__}: {exc}', withheld)
         except Exception as exc:  # a bug in one window must not take the node down
@@ -468,8 +515,41 @@ class EstimatorNode(StationInputs):
                 np.vstack(states),
                 np.concatenate(covs),
                 tb,
+                t1=est.t1,
             )
         )
+
+    def _publish_residuals(self, est: Estimate, obs: Observations, tb: TimeBase) -> None:
+        """``estimator/window_residuals``: per-station whitened-residual statistics of the
+        rows after the previous window's end (so that summing windows counts each
+        measurement once); never fails the window."""
+        after = self.residuals_after
+        if after is not None and not est.t0 < after < est.t1:
+            after = None  # no overlap (a pause), or time went back
+        try:
+            stats = window_residual_stats(est, obs, after)
+            self.residual_pub.publish(window_residuals_to_msg(stats, est.t0, est.t1, after, tb))
+        except Exception as exc:  # statistics are a report: the window stands without them
+            self._reject('residuals_failed', f'window residuals not published: {exc!r}')
+        self.residuals_after = est.t1
+
+    # -- biases --------------------------------------------------------------------
+    def _window_config(self, obs: Observations) -> EstimatorConfig:
+        """The estimator settings of one window: the bias declaration resolved against the
+        stations that have rows in it (and their fields)."""
+        if self.bias_declaration.empty:
+            return self.est_cfg
+        biases, notes = self.bias_declaration.resolve(station_fields(obs))
+        for note in notes:
+            if note not in self.bias_notes:  # once per declaration entry
+                self.bias_notes.add(note)
+                self.get_logger().warning(note)
+        return replace(self.est_cfg, biases=biases)
+
+    def _publish_biases(self, est: Estimate, tb: TimeBase) -> None:
+        """``trajectory/biases`` (transient local): the window's station biases, if any."""
+        if est.biases:
+            self.bias_pub.publish(biases_to_diagnostics(est.biases, est.t0, est.t1, tb))
 
     # -- diagnostics ---------------------------------------------------------------
     def _reject(self, key: str, text: str) -> None:

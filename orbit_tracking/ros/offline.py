@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 from collections import Counter
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -16,9 +16,22 @@ import yaml
 from tqdm import tqdm
 
 from orbit_tracking.core.alignment import AlignConfig
+from orbit_tracking.core.bias_files import (
+    BiasDeclaration,
+    load_bias_declaration,
+    station_fields,
+    truth_biases,
+    write_biases_by_window_csv,
+    write_biases_csv,
+)
 from orbit_tracking.core.buffer import ObservationBuffer
-from orbit_tracking.core.errors import MeasurementError, OrbitTrackingError
-from orbit_tracking.core.estimator import Estimate, EstimationError, EstimatorConfig
+from orbit_tracking.core.errors import ConfigError, MeasurementError, OrbitTrackingError
+from orbit_tracking.core.estimator import (
+    BiasEstimate,
+    Estimate,
+    EstimationError,
+    EstimatorConfig,
+)
 from orbit_tracking.core.fixes import (
     TimedFix,
     TriangulationPipeline,
@@ -27,7 +40,9 @@ from orbit_tracking.core.fixes import (
 )
 from orbit_tracking.core.metrics import NeesSummary, hermite_states, nees, nees_summary
 from orbit_tracking.core.observations import Observations
+from orbit_tracking.core.scenario import load_scenario
 from orbit_tracking.core.simulation import TargetStates
+from orbit_tracking.core.systematic import ESTIMABLE_BIASES
 from orbit_tracking.core.triangulation import Gates
 from orbit_tracking.core.windows import (
     Span,
@@ -41,6 +56,7 @@ from orbit_tracking.ros import qos
 from orbit_tracking.ros.bag import BagWriter, bag_custom_data, read_bag
 from orbit_tracking.ros.conversions import (
     TimeBase,
+    biases_to_diagnostics,
     cloud_to_measurements,
     fix_to_msg,
     msg_to_fix,
@@ -62,13 +78,17 @@ __all__ = [
 
 @dataclass
 class BagContext:
-    """What a bag says about itself: time base, world frame, gaps, and the truth if any."""
+    """What a bag says about itself: time base, world frame, gaps, and the truth if any
+    (target states; the simulated station biases per (station, bias name), None when the
+    bag does not say)."""
 
     timebase: TimeBase | None = None
     world_frame: str = ''
     scenario: str = ''
     gaps: list[tuple[float, float]] = field(default_factory=list)
     truth: dict[int, TargetStates] = field(default_factory=dict)
+    truth_biases: dict[tuple[str, str], float] | None = None
+    truth_biases_source: str = ''
 
     @classmethod
     def from_custom_data(cls, path: str | Path) -> BagContext:
@@ -79,7 +99,27 @@ class BagContext:
         ctx.world_frame = data.get('orbit_tracking.world_frame', '')
         ctx.scenario = data.get('orbit_tracking.scenario', '')
         ctx.gaps = [tuple(g) for g in yaml.safe_load(data.get('orbit_tracking.gaps', '[]')) or []]
+        if 'orbit_tracking.biases' in data:
+            biases = yaml.safe_load(data['orbit_tracking.biases']) or {}
+            ctx.truth_biases = {
+                (str(sid), str(name)): float(v)
+                for sid, values in biases.items()
+                for name, v in values.items()
+            }
+            ctx.truth_biases_source = 'bag metadata (orbit_tracking.biases)'
         return ctx
+
+    def scenario_truth_biases(self) -> None:
+        """For a simulated bag written before its metadata kept the biases (it has truth
+        and names a scenario of the package): take them from that scenario file."""
+        if self.truth_biases is not None or not self.truth or not self.scenario:
+            return
+        try:
+            sc = load_scenario(self.scenario)
+        except (FileNotFoundError, ConfigError):
+            return
+        self.truth_biases = truth_biases(sc)
+        self.truth_biases_source = f'scenario file {sc.source}'
 
     def tb(self, ns: int) -> TimeBase:
         if self.timebase is None:
@@ -341,7 +381,9 @@ class EstimationReport:
     """Outcome of :func:`estimate_bag`.
 
     ``times``, ``state`` (m, 6) and ``covariance`` (m, 6, 6) are the stitched trajectory
-    of ``target_id`` (the lowest target id solved).
+    of ``target_id`` (the lowest target id solved). ``biases`` are the final station biases
+    (each from the last window with rows of its station), ``bias_notes`` what the
+    declaration could not apply, ``bias_evaluation`` their errors against the bag's truth.
     """
 
     estimates: list[Estimate]
@@ -355,6 +397,9 @@ class EstimationReport:
     rough: str
     files: list[Path]
     evaluation: dict[int, dict[str, dict[str, float]]] = field(default_factory=dict)
+    biases: tuple[BiasEstimate, ...] = ()
+    bias_notes: list[str] = field(default_factory=list)
+    bias_evaluation: dict[tuple[str, str], dict[str, float]] = field(default_factory=dict)
 
     def lines(self) -> list[str]:
         """Human-readable summary."""
@@ -390,6 +435,18 @@ class EstimationReport:
                     f'm/s), mean NEES {ev["mean_nees_position"]:.2f} (position, 3 dof), '
                     f'{ev["mean_nees_state"]:.2f} (state, 6 dof)'
                 )
+        out += self.bias_notes
+        per_station: dict[str, list[str]] = {}
+        for b in self.biases:
+            text = f'{b.name} {b.value:.6g} +- {b.sigma:.3g}'
+            ev = self.bias_evaluation.get((b.station, b.name))
+            if ev is not None:
+                text += f' (truth {ev["truth"]:.6g}, z {ev["z"]:+.2f})'
+            if b.status != 'estimated':
+                text += f' [{b.status.split(":")[0]}]'
+            per_station.setdefault(b.station, []).append(text)
+        for sid, texts in per_station.items():
+            out.append(f'biases {sid}: ' + ', '.join(texts))
         return out
 
 
@@ -430,14 +487,17 @@ def _read_for_estimation(
     return buf, +counts
 
 
-def _triangulated_fixes(bag: str | Path, ctx: BagContext, progress: bool) -> list[TimedFix]:
+def _triangulated_fixes(
+    bag: str | Path, ctx: BagContext, progress: bool, gates: Gates | None = None
+) -> list[TimedFix]:
     """Fixes of the bag's lines of sight (the rough trajectory when the bag has neither
     telemetry nor fixes)."""
-    pipe = TriangulationPipeline()
+    pipe = TriangulationPipeline(gates=gates)
     ignored: Counter[str] = Counter()  # already counted by the first pass
+    fixes: list[TimedFix] = []
     for item in _bag_inputs(bag, ctx, ignored, progress, 'triangulate'):
-        _feed_pipeline(pipe, item)
-    return pipe.flush()
+        fixes.extend(_feed_pipeline(pipe, item))  # epochs fixed as the data pass them
+    return fixes + pipe.flush()
 
 
 def _truth_velocity(tr: TargetStates, t: np.ndarray) -> np.ndarray:
@@ -504,20 +564,35 @@ def estimate_bag(
     est_cfg: EstimatorConfig | None = None,
     win_cfg: WindowConfig | None = None,
     progress: bool = True,
+    biases: BiasDeclaration | str | None = None,
 ) -> EstimationReport:
     """Estimate the trajectory of a bag in the estimator node's sliding windows.
 
     Reads the measurements, station states, ``telemetry/state``, ``triangulation/fixes``
     and ``truth/state`` of the bag; when it holds neither telemetry nor fixes, its lines of
     sight are triangulated first (the rough trajectory). The windows are those of the node
-    (:func:`~orbit_tracking.core.windows.solve_windows`). Writes to ``out``:
+    (:func:`~orbit_tracking.core.windows.solve_windows`).
+
+    ``biases`` (a declaration, or a ``bias_file`` value: ``''``, ``'auto'`` or a YAML
+    path) is resolved against the stations of the bag and their fields and replaces
+    ``est_cfg.biases`` (an empty declaration keeps them). With biases declared, the
+    triangulation that makes the rough trajectory runs without its miss-distance gate
+    (``Gates(miss_probability=1.0)``): the lines of biased stations do not meet, and gating
+    them would throw away exactly the data the biases are estimated from.
+
+    Writes to ``out``:
 
     * ``trajectory.csv``: the stitched trajectory of the lowest target id (contract
       columns); with several targets also ``trajectory_target_<id>.csv``;
+    * ``biases.csv`` (contract columns ``station,field,bias,sigma``; header only without
+      biases): each declared bias from the last window with rows of its station;
+      ``biases_by_window.csv``: every window's biases with prior and status;
     * ``bag/``: ``trajectory/states`` (Odometry per output time; other targets on
-      ``trajectory/target_<id>/states``) and ``estimator/window_states``;
+      ``trajectory/target_<id>/states``), ``estimator/window_states`` and, with biases,
+      ``trajectory/biases`` (one DiagnosticArray per window, transient local);
     * ``summary.yaml``: windows, iterations, chi2, used/rejected rows, and with truth the
-      errors outside and inside the bag's gaps and the mean NEES.
+      errors outside and inside the bag's gaps and the mean NEES; with biases the final
+      biases (and their errors against the bag's simulated biases, if known).
 
     Raises
     ------
@@ -526,20 +601,35 @@ def estimate_bag(
     """
     est_cfg = est_cfg or EstimatorConfig()
     win_cfg = win_cfg or WindowConfig()
+    decl = load_bias_declaration(biases) if isinstance(biases, str) else biases
     ctx = BagContext.from_custom_data(bag)
     buf, counts = _read_for_estimation(bag, ctx, progress)
     obs = buf.observations()
     if buf.withheld:
         counts['no_station_state'] += sum(buf.withheld.values())
     counts.update(buf.counts)
+    bias_notes: list[str] = []
+    if decl is not None and not decl.empty:
+        fields = station_fields(obs)
+        declared, bias_notes = decl.resolve(fields)
+        bias_notes += [
+            f'bias declaration names station {sid}, which has no measurements in the bag'
+            for sid in decl.stations
+            if sid not in fields
+        ]
+        est_cfg = replace(est_cfg, biases=declared)
     if obs.telemetry:
         rough = 'telemetry'
     elif obs.fixes:
         rough = 'triangulation/fixes of the bag'
     else:
-        fixes = _triangulated_fixes(bag, ctx, progress)
+        # biased lines of sight miss each other: keep them for the biases to explain
+        gates = Gates(miss_probability=1.0) if est_cfg.biases else None
+        fixes = _triangulated_fixes(bag, ctx, progress, gates)
         obs = Observations(obs.stations, {}, fix_series(fixes))
-        rough = f'{len(fixes)} fixes triangulated from the bag'
+        rough = f'{len(fixes)} fixes triangulated from the bag' + (
+            ' (miss-distance gate off: biases declared)' if gates else ''
+        )
     tb = ctx.timebase or TimeBase(0)
     failures: list[tuple[Span, str]] = []
     bar = tqdm(unit='window', disable=not progress, desc='estimate')
@@ -571,6 +661,11 @@ def estimate_bag(
         for tid in targets:
             files.append(out / f'trajectory_target_{tid}.csv')
             write_trajectory_csv(files[-1], *tracks[tid], tb.ref_ns)
+    final = _final_biases(estimates)
+    files.append(out / 'biases.csv')
+    write_biases_csv(files[-1], [b for b, _ in final])
+    files.append(out / 'biases_by_window.csv')
+    write_biases_by_window_csv(files[-1], [(e.t0, e.t1, e.biases) for e in estimates], tb.ref_ns)
     frame = ctx.world_frame or 'earth'
     msgs: list[tuple[int, str, object]] = []
     for tid, (tt, x, cov) in tracks.items():
@@ -599,8 +694,17 @@ def estimate_bag(
             np.vstack(xs),
             np.concatenate(cs),
             tb,
+            t1=e.t1,
         )
         msgs.append((tb.to_ns(e.t1), 'estimator/window_states', msg))
+        if e.biases:
+            msgs.append(
+                (
+                    tb.to_ns(e.t1),
+                    'trajectory/biases',
+                    biases_to_diagnostics(e.biases, e.t0, e.t1, tb),
+                )
+            )
     bag_out = out / 'bag'
     if bag_out.exists():
         import shutil
@@ -609,11 +713,24 @@ def estimate_bag(
     msgs.sort(key=lambda r: r[0])
     with BagWriter(bag_out) as w:
         for t_ns, topic, msg in msgs:
-            w.write(topic, msg, t_ns, qos.STATE_STREAM)
+            w.write(
+                topic, msg, t_ns, qos.LATCHED if topic == 'trajectory/biases' else qos.STATE_STREAM
+            )
     files.append(bag_out)
     t_main, x_main, c_main = tracks[main]
     report = EstimationReport(
-        estimates, failures, main, t_main, x_main, c_main, counts, ctx, rough, files
+        estimates,
+        failures,
+        main,
+        t_main,
+        x_main,
+        c_main,
+        counts,
+        ctx,
+        rough,
+        files,
+        biases=tuple(b for b, _ in final),
+        bias_notes=bias_notes,
     )
     for tid, (tt, x, cov) in tracks.items():
         if tid in ctx.truth and tt.size:
@@ -630,6 +747,8 @@ def estimate_bag(
             'output_step': win_cfg.output_step,
             'knot_method': est_cfg.knot_method,
             'use_telemetry': est_cfg.use_telemetry,
+            'biases': '' if decl is None or decl.empty else decl.source or 'declared',
+            'bias_parameters': len(est_cfg.biases),
         },
         'counts': {k: int(v) for k, v in sorted(counts.items())},
         'totals': {
@@ -649,6 +768,59 @@ def estimate_bag(
         ),
         'evaluation': report.evaluation,
     }
+    if est_cfg.biases:
+        summary['biases'] = _bias_summary(report, final)
     (out / 'summary.yaml').write_text(yaml.safe_dump(summary, sort_keys=False))
     files.append(out / 'summary.yaml')
     return report
+
+
+def _final_biases(estimates: list[Estimate]) -> list[tuple[BiasEstimate, Estimate]]:
+    """Each (station, bias) from the last window that has it (the final window for a
+    station that measures to the end), in the order of the bias names."""
+    last: dict[tuple[str, str], tuple[BiasEstimate, Estimate]] = {}
+    for e in sorted(estimates, key=lambda e: (e.t0, e.t1)):
+        for b in e.biases:
+            last[(b.station, b.name)] = (b, e)
+    order = {n: i for i, n in enumerate(ESTIMABLE_BIASES)}
+    return [last[k] for k in sorted(last, key=lambda k: (k[0], order[k[1]]))]
+
+
+def _bias_summary(
+    report: EstimationReport, final: list[tuple[BiasEstimate, Estimate]]
+) -> dict[str, object]:
+    """The ``biases`` section of summary.yaml; fills ``report.bias_evaluation``."""
+    ctx = report.context
+    ctx.scenario_truth_biases()
+    rows = []
+    for b, e in final:
+        row: dict[str, object] = {
+            'station': b.station,
+            'field': b.name,
+            'bias': float(b.value),
+            'sigma': float(b.sigma),
+            'prior': float(b.prior),
+            'prior_sigma': float(b.prior_sigma),
+            'status': b.status,
+            'window': [float(e.t0), float(e.t1)],
+        }
+        if ctx.truth_biases is not None:
+            truth = ctx.truth_biases.get((b.station, b.name), 0.0)
+            ev = {
+                'truth': truth,
+                'error': float(b.value - truth),
+                'z': float((b.value - truth) / b.sigma),
+            }
+            report.bias_evaluation[(b.station, b.name)] = ev
+            row.update(ev)
+        rows.append(row)
+    out: dict[str, object] = {'final': rows, 'notes': list(report.bias_notes)}
+    if ctx.truth_biases is not None:
+        z = [
+            abs(report.bias_evaluation[(b.station, b.name)]['z'])
+            for b, _ in final
+            if b.status.startswith('estimated')
+        ]
+        out['truth_source'] = ctx.truth_biases_source
+        out['max_abs_z_estimated'] = max(z, default=math.nan)
+    return out

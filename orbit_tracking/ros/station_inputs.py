@@ -6,6 +6,15 @@ station's ``stations/<id>/state`` once that topic's publisher is known, with a r
 durability matched to it (a transient-local reader does not match a volatile writer).
 It validates station states (id and world frame consistent) and owns the node's time
 base and world frame.
+
+It also watches time: a stamp more than ``time_reset_tolerance`` seconds older than the
+newest one of the same stream (a station's measurements, a moving station's states, or a
+stream the node adds) means the source started again (a bag replayed in a loop, a
+restarted simulator). The node then resets once (``_on_time_reset``: publish what it holds,
+clear buffers and windows), logs one line and counts ``time_resets``; fixed-station states
+are given back to it. The other streams join the new time line as their stamps go back
+too; until then what they still deliver from the old one is dropped
+(``stale_after_reset``).
 """
 
 from __future__ import annotations
@@ -19,6 +28,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 
 from orbit_tracking.core.errors import MeasurementError
+from orbit_tracking.core.fixes import format_stamp
 from orbit_tracking.ros import qos
 from orbit_tracking.ros.conversions import (
     MeasurementBatch,
@@ -28,6 +38,7 @@ from orbit_tracking.ros.conversions import (
     odometry_to_station_state,
     stamp_ns,
 )
+from orbit_tracking.ros.parameters import declare
 
 __all__ = ['StationInputs']
 
@@ -38,8 +49,8 @@ class StationInputs(Node):
     """Mixin base of a node fed by station topics.
 
     Subclasses implement ``_add_measurements(sid, batch)`` (a decoded, validated message),
-    ``_add_pose(sid, state)`` and ``_reject(key, text)``, keep a ``counts`` Counter, and
-    call :meth:`_start_station_inputs` from ``__init__``.
+    ``_add_pose(sid, state)``, ``_reject(key, text)`` and ``_on_time_reset()``, keep a
+    ``counts`` Counter, and call :meth:`_start_station_inputs` from ``__init__``.
     """
 
     timebase: TimeBase | None
@@ -55,6 +66,21 @@ class StationInputs(Node):
         self.world_frame = ''
         self.subs = {}
         self.state_subs = {}
+        self.time_reset_tolerance = declare(
+            self,
+            'time_reset_tolerance',
+            5.0,
+            'A stamp this many seconds older than the newest of its stream (a bag replayed '
+            'in a loop, a restarted source) resets the node: held data are published, '
+            'buffers and windows cleared.',
+            read_only=True,
+            min_value=0.01,
+            max_value=1e9,
+        )
+        self._streams: dict[str, tuple[int, int]] = {}  # stream -> (generation, newest ns)
+        self._generation = 0
+        self._generation_newest: int | None = None
+        self._fixed_states: dict[str, StationStateSample] = {}
         for sid in station_filter:
             self._subscribe(sid)
         self.create_timer(0.5, self._discover)
@@ -120,10 +146,16 @@ class StationInputs(Node):
                 f'expected {self.world_frame!r}',
             )
             return
+        if st.moving and not self._in_time(f'{sid}/state', stamp_ns(msg.header.stamp)):
+            return
+        if not st.moving:  # given back to the node after a time reset
+            self._fixed_states[sid] = st
         self.world_frame = msg.header.frame_id
         self._add_pose(sid, st)
 
     def _on_measurements(self, msg: PointCloud2, sid: str) -> None:
+        self.counts['measurement_messages'] += 1
+        self.counts['measurements_received'] += msg.width * msg.height
         tb = self._timebase(stamp_ns(msg.header.stamp))
         try:
             batch = cloud_to_measurements(msg, tb)
@@ -139,7 +171,47 @@ class StationInputs(Node):
                 'ignored',
             )
             return
+        if not self._in_time(sid, stamp_ns(msg.header.stamp)):
+            return
         self._add_measurements(sid, batch)
+
+    # -- time going back ------------------------------------------------------------
+    def _in_time(self, stream: str, stamp: int) -> bool:
+        """Whether a message of ``stream`` stamped ``stamp`` [ns] is to be used, after
+        resetting the node if it starts a new time line (see the module docstring).
+
+        Each stream is compared with itself: messages of one topic arrive in order, while
+        different topics may lag each other by a queue's worth.
+        """
+        tol = int(self.time_reset_tolerance * 1e9)
+        gen, newest = self._streams.get(stream, (self._generation, stamp))
+        if stamp < newest - tol:
+            if gen == self._generation:  # the first stream to go back: a new time line
+                self._time_reset(stream, newest, stamp)
+            gen, newest = self._generation, stamp
+        elif gen != self._generation:
+            ref = self._generation_newest
+            if ref is not None and stamp > ref + tol:  # still the old time line
+                self.counts['stale_after_reset'] += 1
+                return False
+            gen = self._generation
+        self._streams[stream] = (gen, max(newest, stamp))
+        ref = self._generation_newest
+        self._generation_newest = stamp if ref is None else max(ref, stamp)
+        return True
+
+    def _time_reset(self, stream: str, newest: int, stamp: int) -> None:
+        self._generation += 1
+        self._generation_newest = None
+        self.counts['time_resets'] += 1
+        done = self._on_time_reset()
+        for sid, st in self._fixed_states.items():
+            self._add_pose(sid, st)
+        self.get_logger().warning(
+            f'time went back {(newest - stamp) * 1e-9:.3f} s on {stream} (to stamp '
+            f'{format_stamp(stamp, 0.0)}): reset #{self.counts["time_resets"]}, {done}, '
+            'buffers cleared'
+        )
 
     # -- implemented by the node ----------------------------------------------------
     def _add_measurements(self, sid: str, batch: MeasurementBatch) -> None:
@@ -149,4 +221,8 @@ class StationInputs(Node):
         raise NotImplementedError
 
     def _reject(self, key: str, text: str) -> None:
+        raise NotImplementedError
+
+    def _on_time_reset(self) -> str:
+        """Publish what is held, clear buffers and windows; say what was published."""
         raise NotImplementedError

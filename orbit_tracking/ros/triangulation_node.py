@@ -231,6 +231,21 @@ class TriangulationNode(StationInputs):
                 f'data idle for {self.flush_after:g} s: fixed {len(fixes)} held epoch(s)'
             )
 
+    def _on_time_reset(self) -> str:
+        """Time went back (see StationInputs): fix the epochs the lag still holds, then
+        start a new pipeline; its counters carry on."""
+        held: list[TimedFix] = []
+        if self.timebase is not None and not self.flushed:
+            held = self.pipeline.process(until=self.pipeline.aligner.latest)
+            self._publish(held, self.timebase)
+        old = self.pipeline
+        self.pipeline = TriangulationPipeline(old.aligner.config, old.gates)
+        self.pipeline.counts.update(old.counts)
+        self.pipeline.counts.update(old.aligner.counts)
+        self.first_pending = None
+        self.flushed = True
+        return f'{len(held)} held epoch(s) fixed'
+
     def _publish(self, fixes: list[TimedFix], tb: TimeBase) -> None:
         frame = self.world_frame or 'earth'
         for f in fixes:

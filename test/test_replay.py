@@ -1,0 +1,249 @@
+"""``orbit-tracking replay`` (``--loop``, ``--clock``), the processing nodes' reset when time
+goes back, and a smoke run of the DDS throughput benchmark."""
+
+from __future__ import annotations
+
+import dataclasses
+import signal
+import sys
+import types
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import numpy as np
+import pytest
+
+from orbit_tracking.cli import main as cli_main
+from orbit_tracking.core.scenario import load_scenario
+from orbit_tracking.core.simulation import simulate
+from orbit_tracking.core.stream import EventStream
+
+EPOCH_NS = 1_700_000_000 * 1_000_000_000
+
+SHORT_Q2 = """\
+base: seed003_q2
+name: q2_short
+description: seed003_q2 cut to 20 s (replay tests)
+span: [50.0, 70.0]
+"""
+
+
+def _stamp(msg) -> int:
+    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+
+
+def _events(scenario, t_end: float | None = None):
+    """``(event, message)`` of a scenario (optionally cut at ``t_end``), in time order, as a
+    live simulator or a bag replay delivers them."""
+    from orbit_tracking.ros.conversions import TimeBase
+    from orbit_tracking.ros.messages import event_message
+
+    sc = load_scenario(scenario)
+    if t_end is not None:
+        sc = dataclasses.replace(sc, t_end=t_end)
+    result = simulate(sc)
+    tb = TimeBase.from_seconds(sc.epoch)
+    return [(ev, event_message(result, ev, tb)) for ev in EventStream(result, truth=False)]
+
+
+def _feed(node, ev, msg) -> None:
+    """Hand a message to a node's subscription callback, as its executor would."""
+    if ev.kind == 'measurement':
+        node._on_measurements(msg, ev.key)
+    elif ev.kind == 'station_state':
+        node._on_state(msg, ev.key)
+    else:
+        node._on_telemetry(msg)
+
+
+@contextmanager
+def default_context(**params: object) -> Iterator[None]:
+    """rclpy's default context with node parameters, for a node built in this process and
+    fed by calling its callbacks (no DDS traffic)."""
+    import rclpy
+
+    args = ['--ros-args'] + [a for k, v in params.items() for a in ('-p', f'{k}:={v}')]
+    rclpy.init(args=args)
+    try:
+        yield
+    finally:
+        rclpy.try_shutdown()
+
+
+def test_triangulation_node_resets_once_per_loop_and_repeats_its_fixes(tmp_path):
+    from orbit_tracking.ros.triangulation_node import TriangulationNode
+
+    (tmp_path / 'q2.yaml').write_text(SHORT_Q2)
+    events = _events(tmp_path / 'q2.yaml')
+    # a message of the first pass that arrives after the second began, on another topic
+    # (messages of different topics are not ordered with respect to each other)
+    straggler = next(
+        (ev, m) for ev, m in reversed(events) if ev.kind == 'measurement' and ev.key == 'sat09'
+    )
+    with default_context(lag=0.5):
+        node = TriangulationNode()
+        got: list = []
+        node.fix_pub = types.SimpleNamespace(publish=got.append)
+        try:
+            for ev, msg in events:
+                _feed(node, ev, msg)
+            _feed(node, *events[0])  # the bag again: time goes back
+            assert node.counts['time_resets'] == 1
+            first_pass = len(got)  # with the held epochs, fixed at the reset
+            _feed(node, *straggler)
+            assert node.counts['stale_after_reset'] == 1
+            for ev, msg in events[1:]:
+                _feed(node, ev, msg)
+            _feed(node, *events[0])  # a third pass: the second one's held epochs are fixed
+            assert node.counts['time_resets'] == 2
+        finally:
+            node.destroy_node()
+    assert first_pass > 90  # 20 s at 5 Hz
+    # the second pass gives exactly the fixes of the first: nothing of it leaked over
+    assert [_stamp(m) for m in got[first_pass:]] == [_stamp(m) for m in got[:first_pass]]
+    pos = np.array([[m.pose.pose.position.x, m.pose.pose.position.y] for m in got])
+    np.testing.assert_allclose(pos[first_pass:], pos[:first_pass], rtol=0, atol=1e-6)
+
+
+def test_estimator_node_solves_the_held_window_and_starts_anew_when_time_goes_back():
+    from orbit_tracking.ros.conversions import TimeBase, cloud_to_window_states
+    from orbit_tracking.ros.estimator_node import EstimatorNode
+
+    keep = ('cw01', 'cw03', 'cw07', 'opt01', 'opt02')  # enough for the fit, quick to solve
+    events = [(ev, m) for ev, m in _events('seed000_s1', t_end=6.0) if ev.key in keep + ('0',)]
+    params = {'window_length': 4.0, 'window_overlap': 1.0, 'latency': 0.5}
+    with default_context(**params, time_reference=EPOCH_NS * 1e-9):
+        node = EstimatorNode()
+        got: list = []
+        node.window_pub = types.SimpleNamespace(publish=got.append)
+        try:
+            for _ in range(2):
+                for i, (ev, msg) in enumerate(events):
+                    _feed(node, ev, msg)
+                    if i % 50 == 0:
+                        node._solve_due(final=False)  # the node's timer
+            node._solve_due(final=True)  # the end of the stream
+            assert node.counts['time_resets'] == 1
+        finally:
+            node.destroy_node()
+    tb = TimeBase(EPOCH_NS)
+    windows = [cloud_to_window_states(m, tb) for m in got]
+    spans = [(round(w.t0, 3), round(w.t1, 3)) for w in windows]
+    # [0, 4] closed by the data, the rest by the reset (the end of the first pass); then
+    # the same again from a clean start
+    assert len(spans) == 4 and spans[0] == (0.0, 4.0) and spans[2:] == spans[:2], spans
+    np.testing.assert_allclose(windows[2].state, windows[0].state, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(windows[3].state, windows[1].state, rtol=0, atol=1e-6)
+
+
+@pytest.mark.dds
+def test_replay_in_a_loop_resets_the_triangulation_node_and_publishes_the_bag_clock(
+    tmp_path, start_process, node_command, rclpy_node, spin_until
+):
+    from diagnostic_msgs.msg import DiagnosticArray
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rosgraph_msgs.msg import Clock
+
+    from orbit_tracking.ros import qos
+
+    (tmp_path / 'q2.yaml').write_text(SHORT_Q2)
+    bag = tmp_path / 'bag'
+    assert cli_main(['simulate', '--scenario', str(tmp_path / 'q2.yaml'), '--out', str(bag)]) == 0
+    tri = start_process(node_command('triangulation_node', lag=0.5, flush_after=1.0))
+    fixes: list[int] = []
+    clock: list[int] = []
+    resets: list[int] = []
+    rclpy_node.create_subscription(
+        PoseWithCovarianceStamped,
+        'triangulation/fixes',
+        lambda m: fixes.append(_stamp(m)),
+        qos.STATE_STREAM,
+    )
+    # best effort, as rclpy's own /clock reader (use_sim_time) and the player's writer
+    clock_qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)
+    rclpy_node.create_subscription(
+        Clock, '/clock', lambda m: clock.append(_stamp_of(m)), clock_qos
+    )
+
+    def on_diag(msg: DiagnosticArray) -> None:
+        for s in msg.status:
+            if s.name == 'triangulation: fixes':
+                values = {kv.key: kv.value for kv in s.values}
+                resets.append(int(values.get('time_resets', '0')))
+
+    rclpy_node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, qos.DIAGNOSTICS)
+    spin_until(
+        rclpy_node,
+        lambda: rclpy_node.count_publishers('triangulation/fixes') > 0,
+        20,
+        'the triangulation node to appear',
+    )
+    player = start_process(
+        [sys.executable, '-m', 'orbit_tracking.cli', 'replay', str(bag), '--rate', '10']
+        + ['--loop', '--clock', '--topics', 'stations/*', '--wait-for-subscribers', '1'],
+        label='replay',
+    )
+
+    def after_reset() -> int:
+        """Fixes published after the first one whose stamp went back."""
+        back = next((i for i in range(1, len(fixes)) if fixes[i] < fixes[i - 1]), None)
+        return 0 if back is None else len(fixes) - back
+
+    # 20 s of data at 10x: a loop every 2 s
+    spin_until(
+        rclpy_node,
+        lambda: bool(resets) and resets[-1] >= 1 and after_reset() >= 50,
+        30,
+        lambda: f'a reset and 50 fixes after it; resets {resets[-1:]}, {len(fixes)} fixes',
+    )
+    player.send_signal(signal.SIGINT)
+    assert player.wait(timeout=10) == 0
+    assert 'loop(s) restarted' in player.output()
+    assert 'time went back' in tri.errors() and 'reset #1' in tri.errors()
+    assert 'Traceback' not in tri.errors() + player.errors()
+    # fixes of every pass: the stamps of the first pass again after the reset
+    first = fixes[: len(fixes) - after_reset()]
+    again = fixes[len(first) :]
+    assert again[:20] == first[:20]
+    # /clock follows the stamps of the bag and goes back at a loop
+    c = np.array(clock)
+    t0, t1 = EPOCH_NS + 50 * 10**9, EPOCH_NS + 70 * 10**9
+    assert c.size > 20 and np.all((c >= t0) & (c <= t1))
+    assert np.any(np.diff(c) < -10 * 10**9)
+    assert np.all(np.diff(c)[np.diff(c) > -10 * 10**9] >= 0)
+
+
+def _stamp_of(clock_msg) -> int:
+    return clock_msg.clock.sec * 1_000_000_000 + clock_msg.clock.nanosec
+
+
+def test_replay_of_a_missing_or_broken_bag_is_a_clean_error(tmp_path, capsys):
+    assert cli_main(['replay', str(tmp_path / 'nope')]) == 2
+    (tmp_path / 'x.yaml').write_text('a: 1\n')
+    assert cli_main(['replay', str(tmp_path / 'x.yaml'), '--loop']) == 2
+    assert capsys.readouterr().err.count('orbit-tracking replay: error:') == 2
+
+
+@pytest.mark.dds
+def test_dds_benchmark_runs_end_to_end_with_tiny_settings():
+    from orbit_tracking.bench_dds import bench_dds, dds_table
+
+    rows = bench_dds(rates=[800.0], span=3.0, windows=(2.0, 0.5, 0.5), progress=False)
+    (r,) = rows
+    assert r.sent > 500 and r.messages == r.sent  # single-point messages
+    assert r.tri_received == r.sent and r.est_received == r.sent  # reliable, keep-all
+    assert r.windows >= 2 and r.fixes > 0
+    text = dds_table(rows, 'seed000_s1', 3.0, (2.0, 0.5, 0.5), 1.0, 'bench')
+    assert text.count('\n| 800 |') == 1 and 'Highest offered rate' in text
+
+
+def test_bench_parser_offers_the_dds_suite_outside_all():
+    from orbit_tracking.cli import build_parser
+
+    args = build_parser().parse_args(['bench', '--suite', 'dds', '--rates', '100', '200'])
+    assert args.rates == [100.0, 200.0] and args.span == 30.0
+    assert (
+        build_parser().parse_args(['play', 'x']).func
+        is build_parser().parse_args(['replay', 'x']).func
+    )
