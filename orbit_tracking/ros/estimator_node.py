@@ -87,17 +87,7 @@ def _segments(flat: list[float]) -> tuple[tuple[float, float], ...]:
 class EstimatorNode(StationInputs):
     def __init__(self) -> None:
         super().__init__('estimator')
-        station_filter = [
-            s
-            for s in declare(
-                self,
-                'stations',
-                [''],
-                'Station ids to use; [""] uses every station that appears.',
-                read_only=True,
-            )
-            if s
-        ]
+        station_filter = self._declare_station_filter()
         win = WindowConfig(
             length=declare(
                 self,

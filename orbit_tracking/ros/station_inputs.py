@@ -60,6 +60,17 @@ class StationInputs(Node):
     state_subs: dict[str, Any]
     counts: Counter[str]
 
+    def _declare_station_filter(self) -> list[str]:
+        """The ``stations`` parameter: station ids to use (empty = every one that appears)."""
+        ids = declare(
+            self,
+            'stations',
+            [''],
+            'Station ids to use; [""] uses every station that appears.',
+            read_only=True,
+        )
+        return [s for s in ids if s]
+
     def _start_station_inputs(self, station_filter: list[str], time_reference: float) -> None:
         self.station_filter = station_filter
         self.timebase = TimeBase.from_seconds(time_reference) if time_reference > 0.0 else None

@@ -43,17 +43,7 @@ __all__ = ['TriangulationNode', 'main']
 class TriangulationNode(StationInputs):
     def __init__(self) -> None:
         super().__init__('triangulation')
-        station_filter = [
-            s
-            for s in declare(
-                self,
-                'stations',
-                [''],
-                'Station ids to use; [""] uses every station that appears.',
-                read_only=True,
-            )
-            if s
-        ]
+        station_filter = self._declare_station_filter()
         period = declare(
             self,
             'period',
