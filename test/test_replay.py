@@ -247,3 +247,100 @@ def test_bench_parser_offers_the_dds_suite_outside_all():
         build_parser().parse_args(['play', 'x']).func
         is build_parser().parse_args(['replay', 'x']).func
     )
+
+
+def test_late_station_states_are_waited_for_not_dropped(tmp_path):
+    """The station-state topic queued 8 s of data time behind the measurements (a busy
+    node reads one message per topic per turn): every epoch still gets its states, and
+    the node gives the fixes of a pass in stamp order."""
+    from orbit_tracking.core.alignment import AlignConfig
+    from orbit_tracking.core.fixes import TriangulationPipeline
+    from orbit_tracking.ros.triangulation_node import TriangulationNode
+
+    (tmp_path / 'q2.yaml').write_text(SHORT_Q2)
+    events = _events(tmp_path / 'q2.yaml')
+    states = [e for e in events if e[0].kind == 'station_state']
+    others = [e for e in events if e[0].kind != 'station_state']
+    # interleave: each measurement goes out with the states of 8 s earlier
+    order, i = [], 0
+    for ev, msg in others:
+        while i < len(states) and states[i][0].time <= ev.time - 8.0:
+            order.append(states[i])
+            i += 1
+        order.append((ev, msg))
+    order += states[i:]
+    with default_context(lag=0.5):
+        node = TriangulationNode()
+        got: list = []
+        node.fix_pub = types.SimpleNamespace(publish=got.append)
+        try:
+            for ev, msg in order:
+                _feed(node, ev, msg)
+            node.last_data -= 1e3  # the data stopped long ago: fix what the lag holds
+            node._flush_if_idle()
+            assert node.pipeline.counts['no_station_state'] == 0
+        finally:
+            node.destroy_node()
+    res = simulate(load_scenario(tmp_path / 'q2.yaml'))
+    offline = TriangulationPipeline(AlignConfig(lag=0.5))
+    for sid, st in res.station_states.items():
+        for k in range(st.time.size):
+            offline.add_pose(sid, st.time[k], st.position[k], st.velocity[k], st.rotation[k], True)
+    for sid, m in res.measurements.items():
+        offline.add_measurements(sid, m.fields, m.time, m.target_id, m.values, m.sigmas)
+    assert len(got) == len(offline.flush()) > 50
+    stamps = [_stamp(m) for m in got]
+    assert stamps == sorted(stamps)
+
+
+def test_a_stream_is_quiet_only_after_the_node_waited_for_it():
+    """``silent_after`` counts time spent waiting for data, not time spent working."""
+    import time
+
+    from orbit_tracking.ros.triangulation_node import TriangulationNode
+
+    with default_context(silent_after=0.2):
+        node = TriangulationNode()
+        try:
+            node._in_time('a', EPOCH_NS)
+            node._in_time('b', EPOCH_NS + 3_000_000_000)
+            node._timebase(EPOCH_NS)
+            assert node._delivering() == {'a': 0.0, 'b': 3.0}
+            with node._working():  # a long solve: queued messages are not silence
+                time.sleep(0.3)
+                assert set(node._delivering()) == {'a', 'b'}
+            assert set(node._delivering()) == {'a', 'b'}
+            node._in_time('b', EPOCH_NS + 3_500_000_000)
+            time.sleep(0.25)  # waiting: 'a' and 'b' both went quiet
+            assert node._delivering() == {}
+            node._in_time('b', EPOCH_NS + 4_000_000_000)
+            assert node._delivering() == {'b': 4.0}
+        finally:
+            node.destroy_node()
+
+
+def test_estimator_windows_wait_for_a_late_station(tmp_path):
+    """A station's topic 8 s of data time behind the others holds the estimator's horizon
+    (windows are due on it), instead of its data being cut off by the newest stamp."""
+    from orbit_tracking.ros.estimator_node import EstimatorNode
+
+    (tmp_path / 'q2.yaml').write_text(SHORT_Q2)
+    events = _events(tmp_path / 'q2.yaml')
+    late = [e for e in events if e[0].kind == 'measurement' and e[0].key == 'sat09']
+    others = [e for e in events if not (e[0].kind == 'measurement' and e[0].key == 'sat09')]
+    with default_context(window_length=10.0, window_overlap=2.0):
+        node = EstimatorNode()
+        node._solve_due = lambda final: []  # the horizon only; no solve
+        try:
+            i = 0
+            for ev, msg in others:
+                while i < len(late) and late[i][0].time <= ev.time - 8.0:
+                    _feed(node, *late[i])
+                    i += 1
+                _feed(node, ev, msg)
+            newest = node.buffer.latest_time()  # internal time: from the first stamp
+            lag = late[-1][0].time - late[i - 1][0].time
+            assert lag > 7.0
+            assert node._horizon() == pytest.approx(newest - lag, abs=0.3)
+        finally:
+            node.destroy_node()

@@ -421,3 +421,73 @@ def test_a_new_pass_after_a_long_pause_restarts_the_buffers():
             )
     assert al.counts['restarts'] == 1
     assert al.earliest >= 5000.0
+
+
+def _feed_with_lagging_states(lag_s: float, delivering: bool, quiet: str = '') -> tuple:
+    """seed003_q2 streamed in 0.2 s steps with the satellites' states ``lag_s`` seconds of
+    data time behind their measurements (their topic queued behind while a node was busy);
+    station ``quiet`` stops sending measurements at 100 s (a dropout)."""
+    res = simulate(load_scenario('seed003_q2'))
+    pipe = TriangulationPipeline(AlignConfig(lag=0.5))
+    newest: dict[str, float] = {}
+    fixes = []
+    states, meas = res.station_states, res.measurements
+    horizons = []
+    for step in np.arange(50.0, 171.0, 0.2):
+        for sid, m in meas.items():
+            if sid == quiet and step >= 100.0:
+                newest.pop(sid, None)  # not heard any more
+                continue
+            sel = (m.time >= step) & (m.time < step + 0.2)
+            if sel.any():
+                newest[sid] = float(m.time[sel][0])
+            pipe.add_measurements(
+                sid, m.fields, m.time[sel], m.target_id[sel], m.values[sel], m.sigmas[sel]
+            )
+        for sid, st in states.items():
+            sel = np.flatnonzero((st.time >= step - lag_s) & (st.time < step - lag_s + 0.2))
+            for i in sel:
+                pipe.add_pose(
+                    sid, st.time[i], st.position[i], st.velocity[i], st.rotation[i], True
+                )
+                newest[f'{sid}/state'] = float(st.time[i])
+        fixes += pipe.process(delivering=dict(newest) if delivering else None)
+        horizons.append((step, pipe.aligner.horizon(dict(newest) if delivering else None)))
+    for sid, st in states.items():
+        for i in np.flatnonzero(st.time >= 171.0 - lag_s):
+            pipe.add_pose(sid, st.time[i], st.position[i], st.velocity[i], st.rotation[i], True)
+    fixes += pipe.flush()
+    return fixes, pipe, horizons
+
+
+def test_a_late_state_stream_that_still_delivers_holds_the_fixes_back():
+    """States 8 s of data time behind their measurements (more than ``stale_after``): with
+    the delivering streams known, no epoch is fixed before its states arrive and every fix
+    of the offline pass is made; without that information they were lost."""
+    offline = TriangulationPipeline(AlignConfig(lag=0.5))
+    res = simulate(load_scenario('seed003_q2'))
+    for sid, st in res.station_states.items():
+        for i in range(st.time.size):
+            offline.add_pose(sid, st.time[i], st.position[i], st.velocity[i], st.rotation[i], True)
+    for sid, m in res.measurements.items():
+        offline.add_measurements(sid, m.fields, m.time, m.target_id, m.values, m.sigmas)
+    reference = {round(f.time, 6): f.fix.position for f in offline.flush()}
+
+    fixes, pipe, _ = _feed_with_lagging_states(8.0, delivering=True)
+    assert pipe.counts['no_station_state'] == 0
+    assert len(fixes) == len(reference) == 598
+    for f in fixes:
+        np.testing.assert_allclose(f.fix.position, reference[round(f.time, 6)], atol=1e-9)
+
+    lossy, pipe_old, _ = _feed_with_lagging_states(8.0, delivering=False)
+    assert len(lossy) < 598 and pipe_old.counts['no_station_state'] > 0
+
+
+def test_a_quiet_station_stops_holding_the_others_back():
+    """A station that stops sending (a dropout) no longer bounds the horizon once the
+    others are ``stale_after`` seconds past it, while the late states still do."""
+    fixes, pipe, horizons = _feed_with_lagging_states(3.0, delivering=True, quiet='sat06')
+    late = [(step, h) for step, h in horizons if step >= 120.0]
+    assert late and all(h > 100.0 for _, h in late)
+    assert all(h <= step - 3.0 + 0.2 for step, h in late)  # bounded by the late states
+    assert fixes and pipe.counts['no_station_state'] == 0

@@ -23,7 +23,7 @@ from __future__ import annotations
 import math
 from bisect import bisect_left
 from collections import Counter, defaultdict
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -370,27 +370,57 @@ class Aligner:
         with_data = {sid for sid, _ in self.series}
         return sorted(s for s in with_data if not len(self.poses.get(s, ())))
 
-    def horizon(self) -> float:
+    def horizon(self, delivering: Mapping[str, float] | None = None) -> float:
         """Data time up to which every live stream has delivered.
 
         The minimum of the latest sample time of each measurement series and of each moving
-        station's pose track, ignoring streams that have been silent for more than
-        ``stale_after`` seconds of data time (a station in a dropout must not hold the
-        others back). Measurements and station states travel on different topics, so an
-        epoch is only fixed once the states that bracket it have arrived too.
+        station's pose track. Measurements and station states travel on different topics,
+        so an epoch is only fixed once the states that bracket it have arrived too.
+
+        A stream that has gone quiet (a station in a dropout) must not hold the others
+        back, but a stream that is merely late (its topic queued behind the others while
+        the node was busy) must: fixing an epoch before its samples arrive loses them.
+        ``delivering`` tells the two apart. It maps each stream the caller is still
+        receiving (a station id for its measurements, ``<id>/state`` for its states) to
+        the newest stamp received on it; a stream not in it is quiet. Then:
+
+        * a series of a delivering station is skipped only when the station has moved
+          ``stale_after`` seconds past it (its target left the field of view);
+        * a pose track of a delivering state stream always counts;
+        * a quiet stream, or any stream when ``delivering`` is None (no arrival
+          information), is skipped once it is ``stale_after`` seconds of data time behind
+          the newest sample.
         """
-        ends = [s.t[-1] for s in self.series.values() if s.t]
-        ends += [
-            p.t[-1]
+        stale = self.config.stale_after
+        series_ends = [(sid, s.t[-1]) for (sid, _), s in self.series.items() if s.t]
+        pose_ends = [
+            (f'{sid}/state', p.t[-1])
             for sid, p in self.poses.items()
             if p.moving and p.t and any(k[0] == sid for k in self.series)
         ]
+        ends = [e for _, e in series_ends + pose_ends]
         if not ends:
             return -math.inf
         newest = max(ends)
-        return min(e for e in ends if e >= newest - self.config.stale_after)
+        live = dict(delivering or {})
+        for sid, end in series_ends:  # a station's newest sample, whichever target
+            if sid in live:
+                live[sid] = max(live[sid], end)
+        kept = []
+        for sid, end in series_ends:
+            if end >= (live[sid] if sid in live else newest) - stale:
+                kept.append(end)
+        for stream, end in pose_ends:
+            if stream in live or end >= newest - stale:
+                kept.append(end)
+        return min(kept) if kept else newest
 
-    def process(self, until: float | None = None, wait_for_poses: bool = True) -> list[EpochLines]:
+    def process(
+        self,
+        until: float | None = None,
+        wait_for_poses: bool = True,
+        delivering: Mapping[str, float] | None = None,
+    ) -> list[EpochLines]:
         """Lines at every new common epoch up to ``until``.
 
         By default up to :meth:`horizon` minus the lag, and nothing at all while a station
@@ -403,7 +433,11 @@ class Aligner:
             return []
         if until is None and wait_for_poses and self.stations_without_pose():
             return []
-        limit = self.horizon() - self.config.lag if until is None else min(until, self.latest)
+        limit = (
+            self.horizon(delivering) - self.config.lag
+            if until is None
+            else min(until, self.latest)
+        )
         k_lo = math.ceil(self.earliest / period - 1e-9) if self.next_k is None else self.next_k
         k_hi = math.floor(limit / period + 1e-9)
         if k_hi - k_lo > 1_000_000:

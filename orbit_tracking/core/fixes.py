@@ -7,7 +7,7 @@ from __future__ import annotations
 import csv
 import math
 from collections import Counter
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -84,11 +84,16 @@ class TriangulationPipeline:
         self.add_measurements = self.aligner.add_measurements
         self.stations_without_pose = self.aligner.stations_without_pose
 
-    def process(self, until: float | None = None, wait_for_poses: bool = True) -> list[TimedFix]:
+    def process(
+        self,
+        until: float | None = None,
+        wait_for_poses: bool = True,
+        delivering: Mapping[str, float] | None = None,
+    ) -> list[TimedFix]:
         """Fixes of every epoch that is ready (all epochs with ``until=math.inf``); see
         :meth:`Aligner.process`."""
         out = []
-        for ep in self.aligner.process(until, wait_for_poses):
+        for ep in self.aligner.process(until, wait_for_poses, delivering):
             for why, n in ep.skipped.items():
                 self.counts[why] += n
             res = triangulate(ep.lines, self.gates)

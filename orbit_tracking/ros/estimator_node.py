@@ -401,16 +401,25 @@ class EstimatorNode(StationInputs):
         out: list[tuple[Span, bool]] = []
         if self.timebase is None:
             return out
-        latest = self.buffer.latest_time()
-        while True:
-            start = -math.inf if self.scheduler.next_t0 is None else self.scheduler.next_t0
-            first = self.buffer.first_time(after=start)
-            span = self.scheduler.next_window(first, latest, final)
-            if span is None:
-                break
-            out.append((span, self._solve(span, self.timebase)))
-            self.buffer.prune(self.scheduler.keep_from)
+        latest = self.buffer.latest_time() if final else self._horizon()
+        with self._working():
+            while True:
+                start = -math.inf if self.scheduler.next_t0 is None else self.scheduler.next_t0
+                first = self.buffer.first_time(after=start)
+                span = self.scheduler.next_window(first, latest, final)
+                if span is None:
+                    break
+                out.append((span, self._solve(span, self.timebase)))
+                self.buffer.prune(self.scheduler.keep_from)
         return out
+
+    def _horizon(self) -> float:
+        """Data time every delivering stream has reached (see StationInputs): a window is
+        due once this passes its end by ``latency``, so a topic that fell behind while we
+        were solving is waited for instead of being cut off."""
+        latest = self.buffer.latest_time()
+        live = self._delivering()
+        return min(latest, *live.values()) if live and math.isfinite(latest) else latest
 
     def _solve(self, span: Span, tb: TimeBase) -> bool:
         t0, t1 = span

@@ -15,12 +15,23 @@ clear buffers and windows), logs one line and counts ``time_resets``; fixed-stat
 are given back to it. The other streams join the new time line as their stamps go back
 too; until then what they still deliver from the old one is dropped
 (``stale_after_reset``).
+
+And it tells a late stream from a quiet one (:meth:`StationInputs._delivering`). Topics
+are read one message at a time each, so while the node is busy (a window solve) one
+topic's queue can fall seconds of data time behind another's; its data are late, not
+missing, and processing must wait for them, so that results depend on the stamps and not
+on arrival times. A stream counts as quiet (a dropout, the end of the data) only once the
+node has waited ``silent_after`` seconds for data without hearing from it; time the node
+spent working does not count as waiting.
 """
 
 from __future__ import annotations
 
 import re
+import time
 from collections import Counter
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
 from nav_msgs.msg import Odometry
@@ -88,6 +99,21 @@ class StationInputs(Node):
             min_value=0.01,
             max_value=1e9,
         )
+        self.silent_after = declare(
+            self,
+            'silent_after',
+            2.0,
+            'Wall seconds the node waits for data without hearing from a stream (a '
+            "station's measurements or states, telemetry, fixes) before it stops holding "
+            'fixes and windows back for it; a stream that still delivers, however late, '
+            'is waited for.',
+            read_only=True,
+            min_value=0.1,
+            max_value=3600.0,
+        )
+        self._heard: dict[str, float] = {}  # stream -> idle clock at its last message
+        self._busy_s = 0.0
+        self._busy_since: float | None = None
         self._streams: dict[str, tuple[int, int]] = {}  # stream -> (generation, newest ns)
         self._generation = 0
         self._generation_newest: int | None = None
@@ -186,6 +212,40 @@ class StationInputs(Node):
             return
         self._add_measurements(sid, batch)
 
+    # -- late or quiet streams -------------------------------------------------------
+    @contextmanager
+    def _working(self) -> Iterator[None]:
+        """Mark heavy work (a solve): messages queue meanwhile, which is not silence."""
+        if self._busy_since is not None:  # nested
+            yield
+            return
+        self._busy_since = time.monotonic()
+        try:
+            yield
+        finally:
+            self._busy_s += time.monotonic() - self._busy_since
+            self._busy_since = None
+
+    def _idle_clock(self) -> float:
+        """Wall time [s] not spent in :meth:`_working` blocks."""
+        now = time.monotonic() if self._busy_since is None else self._busy_since
+        return now - self._busy_s
+
+    def _delivering(self) -> dict[str, float]:
+        """Streams heard within ``silent_after`` seconds of waiting, each with the newest
+        stamp received on it (internal seconds). Stream names: a station id (its
+        measurements), ``<id>/state`` (a moving station's states), or a name the node
+        gave to :meth:`_in_time` (``telemetry``, ``fixes``)."""
+        if self.timebase is None:
+            return {}
+        now = self._idle_clock()
+        ref = self.timebase.ref_ns
+        return {
+            stream: (self._streams[stream][1] - ref) * 1e-9
+            for stream, heard in self._heard.items()
+            if now - heard <= self.silent_after and self._streams[stream][0] == self._generation
+        }
+
     # -- time going back ------------------------------------------------------------
     def _in_time(self, stream: str, stamp: int) -> bool:
         """Whether a message of ``stream`` stamped ``stamp`` [ns] is to be used, after
@@ -207,6 +267,7 @@ class StationInputs(Node):
                 return False
             gen = self._generation
         self._streams[stream] = (gen, max(newest, stamp))
+        self._heard[stream] = self._idle_clock()
         ref = self._generation_newest
         self._generation_newest = stamp if ref is None else max(ref, stamp)
         return True

@@ -176,14 +176,20 @@ class TriangulationNode(StationInputs):
         self.pipeline.add_pose(
             st.station_id, st.time, st.position, st.velocity, st.rotation, st.moving
         )
+        if st.moving and not self.flushed:  # a late state may complete held epochs
+            self._process()
 
     def _add_measurements(self, sid: str, batch: MeasurementBatch) -> None:
-        t_start = time.monotonic()
         self.pipeline.add_measurements(
             batch.station_id, batch.fields, batch.time, batch.target_id, batch.values, batch.sigmas
         )
         self.last_data = time.monotonic()
         self.flushed = False
+        self._process()
+
+    def _process(self) -> None:
+        """Fix the epochs every delivering stream has passed (see StationInputs)."""
+        t_start = time.monotonic()
         missing = self.pipeline.stations_without_pose()
         waiting = False
         if missing:
@@ -196,9 +202,10 @@ class TriangulationNode(StationInputs):
                     'fixing without them',
                     throttle_duration_sec=30.0,
                 )
-        fixes = self.pipeline.process(wait_for_poses=waiting)
-        if self.timebase is not None:  # always set once a message was decoded
-            self._publish(fixes, self.timebase)
+        with self._working():
+            fixes = self.pipeline.process(wait_for_poses=waiting, delivering=self._delivering())
+            if self.timebase is not None:  # always set once a message was decoded
+                self._publish(fixes, self.timebase)
         if fixes:
             self.proc_ms.append(1e3 * (time.monotonic() - t_start))
             latest = self.pipeline.aligner.latest
