@@ -1,19 +1,24 @@
-"""``orbit-tracking``: the command-line front end for offline work.
+"""``orbit-tracking``: the command-line front end: offline tools, the recorder and player,
+the main job and the benchmarks.
 
 Subcommands::
 
     orbit-tracking scenarios                          list the scenario files
     orbit-tracking simulate --scenario NAME --out DIR write a scenario to a rosbag2
-    orbit-tracking record --out DIR                   record the contract topics from DDS
+    orbit-tracking record --out DIR [--scenario NAME] record the contract topics from DDS
     orbit-tracking replay BAG [--rate R] [--loop] [--clock]
                                                       publish a bag's messages over DDS
                                                       (alias: play)
     orbit-tracking triangulate BAG --out DIR          fixes.csv from a bag's lines of sight
     orbit-tracking estimate BAG --out DIR             trajectory.csv from a bag, estimated in
                                                       the estimator node's sliding windows
-    orbit-tracking demo [--scenario NAME] [--out DIR] the main job: simulate, triangulate,
-                                                      a live pass over DDS, report with plots
-    orbit-tracking report RUN_DIR                     redraw the report of a demo run
+    orbit-tracking demo [--scenario NAME] [--out DIR] the main job: the nodes over DDS
+                                                      (scenario_sim, triangulation, estimator,
+                                                      results) and a recorder, the output
+                                                      files of the recording, an offline
+                                                      cross-check, report.html
+    orbit-tracking report DIR                         report.html (with PNG figures) of an
+                                                      estimate or demo output folder
     orbit-tracking bench [--suite S] [--seeds N] [--write-docs]
                                                       accuracy vs truth and CRB, wall time
 
@@ -26,12 +31,17 @@ import argparse
 import os
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from orbit_tracking.core.errors import OrbitTrackingError
+
+if TYPE_CHECKING:
+    from orbit_tracking.core.scenario import Scenario
+    from orbit_tracking.ros.offline import RecordingReport
 
 __all__ = ['main']
 
@@ -65,9 +75,15 @@ def _cmd_record(args: argparse.Namespace) -> int:
 
     from orbit_tracking.ros.recorder import DEFAULT_TOPICS, RecorderNode
 
+    labels: dict[str, str] = {}
+    if args.scenario:
+        from orbit_tracking.core.scenario import load_scenario
+        from orbit_tracking.ros.bagsim import scenario_custom_data
+
+        labels = scenario_custom_data(load_scenario(args.scenario))
     rclpy.init()
     try:
-        node = RecorderNode(args.out, args.topics or DEFAULT_TOPICS, args.storage)
+        node = RecorderNode(args.out, args.topics or DEFAULT_TOPICS, args.storage, labels)
     except BaseException:
         # e.g. --out exists: leave rclpy as we found it, so main() can report and return
         rclpy.try_shutdown()
@@ -188,41 +204,23 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _fixes_from_csv(folder: Path, epoch: float) -> list:
-    """TimedFix list back from a triangulation folder (fixes_target_<id>.csv if present)."""
-    from orbit_tracking.core.fixes import TimedFix, read_fixes_csv
-    from orbit_tracking.core.triangulation import Fix
-
-    files = sorted(folder.glob('fixes_target_*.csv')) or [folder / 'fixes.csv']
-    out = []
-    for f in files:
-        tid = int(f.stem.rsplit('_', 1)[1]) if f.stem.startswith('fixes_target_') else 0
-        tab = read_fixes_csv(f)
-        for i in range(len(tab['time'])):
-            fix = Fix(
-                tab['position'][i],
-                tab['covariance'][i],
-                float(tab['miss_distance'][i]),
-                int(tab['n_lines'][i]),
-                (),
-                float('nan'),
-                0,
-                float('nan'),
-                float('nan'),
-            )
-            out.append(TimedFix(float(tab['time'][i] - epoch), tid, fix))
-    return out
-
-
 def _cmd_demo(args: argparse.Namespace) -> int:
     import shutil
 
-    from orbit_tracking.core.scenario import load_scenario
-    from orbit_tracking.core.simulation import World, simulate
-    from orbit_tracking.report import ReportInputs, build_report
-    from orbit_tracking.ros.bagsim import simulate_to_bag
-    from orbit_tracking.ros.offline import triangulate_bag
+    import yaml
 
+    from orbit_tracking.core.scenario import load_scenario
+    from orbit_tracking.report import build_html_report, read_output_folder
+    from orbit_tracking.ros.live import NODES, SIMULATOR, run_live
+    from orbit_tracking.ros.offline import write_recorded_outputs
+    from orbit_tracking.ros.report_inputs import report_context
+
+    if not args.rate_factor > 0.0:
+        print(
+            f'orbit-tracking demo: error: --rate-factor must be > 0; got {args.rate_factor}',
+            file=sys.stderr,
+        )
+        return 2
     sc = load_scenario(args.scenario)
     out = Path(args.out or Path('runs') / sc.name)
     if out.exists():
@@ -233,94 +231,148 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         shutil.rmtree(out)
     out.mkdir(parents=True)
     t_all = time.monotonic()
-    steps = 4 if args.live else 3
-    print(f'[1/{steps}] simulate {sc.name} -> {out / "bag"}')
-    t0 = time.monotonic()
-    n = simulate_to_bag(sc, out / 'bag', progress=not args.quiet)
-    summary = [f'simulate: {n} messages written to {out / "bag"} ({time.monotonic() - t0:.1f} s)']
-    print('   ' + summary[-1])
-    print(f'[2/{steps}] triangulate -> {out / "triangulation"}')
-    t0 = time.monotonic()
-    tri = triangulate_bag(out / 'bag', out / 'triangulation', progress=not args.quiet)
-    summary += ['triangulate: ' + line for line in tri.lines()]
-    summary.append(f'triangulate: {time.monotonic() - t0:.1f} s')
-    for line in summary[1:]:
-        print('   ' + line)
-    live_lines: list[str] = []
-    if args.live:
-        from orbit_tracking.ros.live import run_live
+    steps = 4 if args.offline_check else 3
+    counter = iter(range(1, steps + 1))
 
-        print(
-            f'[3/{steps}] live pass over DDS: scenario_sim -> triangulation '
-            f'(x{args.rate_factor:g})'
-        )
-        live = run_live(sc.name, out, args.rate_factor)
-        offline_ns = {}
-        for f in tri.fixes:
-            offline_ns.setdefault(tri.context.tb(0).to_ns(f.time), []).append(f.fix.position)
-        diffs = [
-            min(np.linalg.norm(p - q) for q in offline_ns[s])
-            for s, p in zip(live.stamps_ns, live.positions, strict=True)
-            if s in offline_ns
-        ]
-        matched = len(diffs)
-        live_lines = [
-            f'{live.measurement_points} measurement points and {len(live.stamps_ns)} fixes '
-            f'recorded from DDS in {live.wall_s:.1f} s (offline: {len(tri.fixes)} fixes)',
-            f'{matched} live fixes share an epoch with an offline fix; largest position '
-            f'difference {max(diffs) if diffs else float("nan"):.2e} m',
-            f'node logs: {live.log_dir}',
-        ]
-        for line in live_lines:
-            print('   ' + line)
-    print(f'[{steps}/{steps}] report -> {out / "report"}')
-    result = simulate(sc)
-    path = build_report(
-        ReportInputs(result, tri.fixes, summary, live_lines), out / 'report', World(sc)
+    def step(text: str) -> None:
+        print(f'[{next(counter)}/{steps}] {text}', flush=True)
+
+    def say(text: str) -> None:
+        print(f'   {text}', flush=True)
+
+    chain = ' -> '.join(sorted((n.executable for n in NODES), key=lambda e: e != SIMULATOR))
+    step(
+        f'live pass over DDS of {sc.name} at {args.rate_factor:g}x real time: {chain}, '
+        f'recorded -> {out / "live_bag"}'
     )
+    try:
+        live = run_live(args.scenario, out, args.rate_factor, progress=None if args.quiet else say)
+    except RuntimeError as exc:  # a node died or a wait ran out: its log says why
+        print(f'orbit-tracking demo: error: {exc}', file=sys.stderr)
+        return 1
+    for line in live.lines():
+        say(line)
+    step(f'output files from the recording -> {out}')
+    est_params = live.parameters['estimator']
+    config = {
+        k: est_params[k]
+        for k in ('window_length', 'window_overlap', 'latency', 'output_step', 'knot_method')
+        if k in est_params
+    }
+    config['use_telemetry'] = bool(est_params.get('use_telemetry', True))
+    config['biases'] = str(est_params.get('bias_file') or '')
+    extra = {
+        'live': {
+            'rate_factor': args.rate_factor,
+            'wall_s': round(live.wall_s, 1),
+            'nodes': live.location.describe(),
+            'commands': {k: ' '.join(v) for k, v in live.commands.items()},
+            'measurement_messages_sent': dict(live.sent),
+            'states_published': live.states_published,
+            'exit_codes': dict(live.exit_codes),
+        }
+    }
+    rec = write_recorded_outputs(live.bag, out, config, extra)
+    for line in rec.lines():
+        say(line)
+    say(f'wrote {", ".join(str(f) for f in rec.files)}')
+    if args.offline_check:
+        step(
+            f'offline cross-check: the same scenario simulated and estimated -> {out / "offline"}'
+        )
+        check = _offline_check(sc, out / 'offline', est_params, rec, not args.quiet)
+        for line in check.pop('lines'):
+            say(line)
+        summary_path = out / 'summary.yaml'
+        summary = yaml.safe_load(summary_path.read_text())
+        summary['live_vs_offline'] = check
+        summary_path.write_text(yaml.safe_dump(summary, sort_keys=False))
+    step(f'report -> {out / "report.html"}')
+    folder = read_output_folder(out)
+    ctx, notes = report_context(out, folder.summary)
+    for line in notes:
+        say(line)
+    path = build_html_report(folder, None, ctx, notes)
     print(f'done in {time.monotonic() - t_all:.1f} s; open {path}')
     return 0
 
 
+def _offline_check(
+    sc: Scenario,
+    folder: Path,
+    est_params: Mapping[str, Any],
+    rec: RecordingReport,
+    progress: bool,
+) -> dict[str, Any]:
+    """Simulate the scenario into a bag (what the simulator node streamed), estimate it
+    offline with the estimator node's settings, and compare with the live trajectory: the
+    same windows over the same data give the same states, unless data were lost or
+    reordered on the way."""
+    from orbit_tracking.ros.bagsim import simulate_to_bag
+    from orbit_tracking.ros.offline import estimate_bag, estimator_configs
+
+    est_cfg, win_cfg, biases = estimator_configs(est_params)
+    t0 = time.monotonic()
+    n = simulate_to_bag(sc, folder / 'bag', progress=progress)
+    off = estimate_bag(folder / 'bag', folder / 'estimate', est_cfg, win_cfg, progress, biases)
+    lines = [f'simulated {n} messages -> {folder / "bag"}; estimated -> {folder / "estimate"}']
+    lines += [f'offline: {line}' for line in off.lines()]
+    # the live states are stamped on the epoch of the scenario, as the offline ones
+    live_ns = np.round(rec.times * 1e9).astype(np.int64)
+    off_ns = np.round(off.times * 1e9).astype(np.int64)
+    common, i, j = np.intersect1d(live_ns, off_ns, return_indices=True)
+    out: dict[str, Any] = {
+        'offline_folder': str(folder / 'estimate'),
+        'live_states': int(live_ns.size),
+        'offline_states': int(off_ns.size),
+        'common_states': int(common.size),
+    }
+    if common.size:
+        dp = np.linalg.norm(rec.state[i, :3] - off.state[j, :3], axis=1)
+        dv = np.linalg.norm(rec.state[i, 3:] - off.state[j, 3:], axis=1)
+        sig = np.sqrt(np.trace(off.covariance[j, :3, :3], axis1=1, axis2=2))
+        out.update(
+            max_position_difference_m=float(dp.max()),
+            max_velocity_difference_m_s=float(dv.max()),
+            max_position_difference_over_sigma=float(np.max(dp / sig)),
+        )
+        lines.append(
+            f'live vs offline: {common.size} common states (live {live_ns.size}, offline '
+            f'{off_ns.size}); largest position difference {dp.max():.3g} m '
+            f'({np.max(dp / sig):.3g} of the offline 1-sigma), velocity {dv.max():.3g} m/s'
+        )
+    else:
+        lines.append(
+            f'live vs offline: no common output time (live {live_ns.size}, offline '
+            f'{off_ns.size} states)'
+        )
+    lines.append(f'offline cross-check: {time.monotonic() - t0:.1f} s')
+    out['lines'] = lines
+    return out
+
+
 def _cmd_report(args: argparse.Namespace) -> int:
+    from orbit_tracking.report import build_html_report, read_output_folder
+    from orbit_tracking.ros.report_inputs import output_world_frame, report_context
+
     run = Path(args.run)
     if not run.is_dir():
         raise FileNotFoundError(f'no folder {run}')
     est = next((d for d in (run, run / 'estimate') if (d / 'trajectory.csv').is_file()), None)
-    demo = (run / 'bag').is_dir() and (run / 'triangulation' / 'summary.yaml').is_file()
-    if est is None and not demo:
+    if est is None:
         raise FileNotFoundError(
             f'{run} has no trajectory.csv (write one with orbit-tracking estimate BAG --out '
-            f'{run}) and is not a demo run folder (bag/ and triangulation/)'
+            f'{run}, or orbit-tracking demo --out {run})'
         )
-    if demo:  # the demo's Markdown report of the scenario and its triangulation
-        from orbit_tracking.core.scenario import load_scenario
-        from orbit_tracking.core.simulation import World, simulate
-        from orbit_tracking.report import ReportInputs, build_report
-        from orbit_tracking.ros.bag import bag_custom_data
-
-        data = bag_custom_data(run / 'bag')
-        name = data.get('orbit_tracking.scenario')
-        if not name:
-            raise FileNotFoundError(f'{run / "bag"} does not say which scenario it holds')
-        sc = load_scenario(name)
-        fixes = _fixes_from_csv(run / 'triangulation', float(data['orbit_tracking.epoch']))
-        summary = (run / 'triangulation' / 'summary.yaml').read_text().splitlines()
-        path = build_report(ReportInputs(simulate(sc), fixes, summary), run / 'report', World(sc))
-        print(f'wrote {path}')
-    if est is not None:  # report.html of an estimate output folder
-        from orbit_tracking.report import build_html_report, read_output_folder
-        from orbit_tracking.ros.report_inputs import output_world_frame, report_context
-
-        try:
-            folder = read_output_folder(est)
-        except ValueError as exc:
-            raise OrbitTrackingError(str(exc)) from exc
-        ctx, notes = report_context(est, folder.summary, args.bag, args.scenario)
-        for line in notes:
-            print(line)
-        path = build_html_report(folder, args.out, ctx, notes, output_world_frame(est))
-        print(f'wrote {path}')
+    try:
+        folder = read_output_folder(est)
+    except ValueError as exc:
+        raise OrbitTrackingError(str(exc)) from exc
+    ctx, notes = report_context(est, folder.summary, args.bag, args.scenario)
+    for line in notes:
+        print(line)
+    path = build_html_report(folder, args.out, ctx, notes, output_world_frame(est))
+    print(f'wrote {path}')
     return 0
 
 
@@ -449,6 +501,13 @@ def build_parser() -> argparse.ArgumentParser:
         help='stop after this many seconds without messages, once some arrived',
     )
     s.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap')
+    s.add_argument(
+        '--scenario',
+        default=None,
+        help='label the bag with the scenario being streamed (name or YAML path; its epoch, '
+        'world frame, gaps and simulated biases, as simulate writes them), so that estimate '
+        'and report find its truth',
+    )
     s.set_defaults(func=_cmd_record)
 
     s = sub.add_parser(
@@ -558,18 +617,37 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument('--quiet', action='store_true', help='no progress bars')
     s.set_defaults(func=_cmd_estimate)
 
-    s = sub.add_parser('demo', help='the main job: simulate, triangulate, live DDS pass, report')
+    s = sub.add_parser(
+        'demo',
+        help='the main job: the nodes over DDS, their recorded output files, report.html',
+        description='The main job. Starts triangulation, estimator, results and a recorder '
+        '(orbit-tracking record) as separate processes talking over DDS, then scenario_sim, '
+        "which streams the scenario with truth and telemetry; waits for the estimator's last "
+        "window and the results node's last states, stops everything and writes, into the "
+        'run folder, the output files of orbit-tracking estimate from the recording '
+        '(trajectory.csv of the results node, biases.csv, biases_by_window.csv, summary.yaml '
+        'with the errors against truth), an offline cross-check (the scenario simulated into '
+        'offline/bag and estimated into offline/estimate with the same settings, compared '
+        'with the live trajectory) and report.html with its PNG figures. Node logs go to '
+        'logs/, the recording to live_bag/.',
+    )
     s.add_argument('--scenario', default='seed000_s1', help='scenario name or YAML path')
     s.add_argument('--out', default=None, help='run folder (default runs/<scenario>)')
     s.add_argument('--force', action='store_true', help='replace an existing run folder')
     s.add_argument(
-        '--live',
+        '--rate-factor',
+        type=float,
+        default=5.0,
+        help='scenario seconds streamed per wall second (default 5)',
+    )
+    s.add_argument(
+        '--offline-check',
         action=argparse.BooleanOptionalAction,
         default=True,
-        help='also stream the scenario through the nodes over DDS (default on)',
+        help='also simulate and estimate the scenario offline and compare with the live '
+        'trajectory (default on)',
     )
-    s.add_argument('--rate-factor', type=float, default=20.0, help='speed of the live pass')
-    s.add_argument('--quiet', action='store_true', help='no progress bars')
+    s.add_argument('--quiet', action='store_true', help='no progress lines or bars')
     s.set_defaults(func=_cmd_demo)
 
     s = sub.add_parser('bench', help='accuracy against truth and the CRB, and wall time')
@@ -599,12 +677,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser(
         'report',
-        help='report.html of an estimate output folder (or redraw a demo run report)',
+        help='report.html of an estimate or demo output folder',
     )
     s.add_argument(
         'run',
-        help='folder written by estimate (trajectory.csv, ...) or by demo (bag/, '
-        'triangulation/; with estimate/ inside, both reports)',
+        help='folder written by estimate or demo (trajectory.csv, summary.yaml, ...), or one '
+        'with such a folder as estimate/',
     )
     s.add_argument(
         '--out', default=None, help='folder for report.html and its PNGs (default: the folder)'

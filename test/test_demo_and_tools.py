@@ -8,36 +8,65 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from orbit_tracking.bench import bench_triangulation, markdown_table, write_docs
 from orbit_tracking.cli import main as cli_main
 from orbit_tracking.core.alignment import AlignConfig
 from orbit_tracking.core.fixes import TriangulationPipeline
+from orbit_tracking.core.metrics import hermite_states
 from orbit_tracking.core.scenario import load_scenario
 from orbit_tracking.core.simulation import simulate
+from orbit_tracking.core.windows import read_trajectory_csv
+from orbit_tracking.ros.live import NODES
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.mark.dds
-def test_demo_runs_the_whole_chain_and_writes_a_report(tmp_path, capsys):
+def test_demo_runs_the_nodes_over_dds_and_reports_their_trajectory(tmp_path, capsys):
+    """The main job on a short scenario (no telemetry: the estimator's rough trajectory is
+    the live triangulation): the results node's trajectory, recorded, is judged against
+    truth by its own covariance; the report and ``orbit-tracking report`` work on it."""
     out = tmp_path / 'run'
-    assert cli_main(['demo', '--scenario', 'seed003_q2', '--out', str(out), '--quiet']) == 0
+    args = ['demo', '--scenario', 'seed003_q2', '--out', str(out), '--rate-factor', '10']
+    assert cli_main([*args, '--quiet']) == 0
     printed = capsys.readouterr().out
-    assert (out / 'bag' / 'metadata.yaml').is_file()
-    assert (out / 'triangulation' / 'fixes.csv').is_file()
     assert (out / 'live_bag' / 'metadata.yaml').is_file()
-    report = (out / 'report' / 'report.md').read_text()
-    for fig in ('geometry.png', 'residuals.png', 'fixes.png'):
-        assert (out / 'report' / fig).stat().st_size > 10_000
-        assert fig in report
-    assert 'mean NEES' in report
-    # the live pass over DDS gave exactly the offline fixes
-    assert '598 fixes recorded from DDS' in printed
-    assert '598 live fixes share an epoch with an offline fix' in printed
-    # re-running into the same folder needs --force
-    assert cli_main(['demo', '--scenario', 'seed003_q2', '--out', str(out), '--no-live']) == 2
+    summary = yaml.safe_load((out / 'summary.yaml').read_text())
+    assert summary['recorded']['trajectory/states'] == summary['live']['states_published']
+    assert summary['totals']['solved'] >= 2 and summary['totals']['failed'] == 0
+
+    # the live trajectory covers the measurements and holds no hole
+    sc = load_scenario('seed003_q2')
+    res = simulate(sc)
+    tab = read_trajectory_csv(out / 'trajectory.csv')
+    t = (tab['stamp_ns'] - round(sc.epoch * 1e9)) * 1e-9
+    step = summary['config']['output_step']
+    seen = np.concatenate([m.time for m in res.measurements.values()])
+    assert t[0] <= seen.min() + step and t[-1] >= seen.max() - step
+    assert np.max(np.diff(t)) < 1.5 * step
+    # errors against truth, judged by the covariance the results node published
+    truth = res.truth[0]
+    err = tab['state'][:, :3] - hermite_states(truth.time, truth.position, truth.velocity, t)
+    z = err / tab['sigma'][:, :3]
+    assert np.all(np.isfinite(z))
+    assert np.mean(z**2) < 3.0  # 1 for an honest covariance; seed003_q2 gives about 1.5
+    assert np.max(np.abs(z)) < 6.0
+
+    html = (out / 'report.html').read_text()
+    for fig in ('trajectory.png', 'state_errors.png', 'residuals.png'):
+        assert (out / fig).stat().st_size > 10_000
+        assert f'src="{fig}"' in html
+    assert 'could not draw' not in html
+    assert 'live vs offline:' in printed
+    # the report command redraws the demo folder
+    (out / 'report.html').unlink()
     assert cli_main(['report', str(out)]) == 0
+    assert (out / 'report.html').is_file()
+    # re-running into the same folder needs --force
+    assert cli_main(args) == 2
+    assert 'pass --force' in capsys.readouterr().err
 
 
 def test_bench_reports_errors_crb_and_times_and_writes_the_docs(tmp_path):
@@ -91,11 +120,7 @@ def test_fixes_wait_for_the_station_states_that_bracket_them():
 @pytest.mark.dds
 @pytest.mark.parametrize(
     'node,module',
-    [
-        ('station_sim', 'station_sim'),
-        ('scenario_sim', 'scenario_sim'),
-        ('triangulation', 'triangulation_node'),
-    ],
+    [('station_sim', 'station_sim'), *((n.executable, n.module) for n in NODES)],
 )
 def test_node_parameter_files_are_accepted(start_process, node, module):
     import sys

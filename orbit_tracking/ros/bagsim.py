@@ -17,7 +17,26 @@ from orbit_tracking.ros.bag import BagWriter
 from orbit_tracking.ros.conversions import TimeBase
 from orbit_tracking.ros.messages import event_message, event_topic
 
-__all__ = ['simulate_to_bag']
+__all__ = ['scenario_custom_data', 'simulate_to_bag']
+
+
+def scenario_custom_data(scenario: Scenario, truth: bool = True) -> dict[str, str]:
+    """The ``custom_data`` that labels a bag of ``scenario``: its name, epoch, world frame,
+    gaps and (with ``truth``) the simulated station biases (``orbit_tracking.biases``, YAML:
+    station -> bias name -> value), so evaluation tools find the truth without any other
+    file. Written by :func:`simulate_to_bag` and by ``orbit-tracking record --scenario``."""
+    data = {
+        'orbit_tracking.scenario': scenario.name,
+        'orbit_tracking.epoch': repr(scenario.epoch),
+        'orbit_tracking.world_frame': scenario.world_frame,
+        'orbit_tracking.gaps': yaml.safe_dump([list(g) for g in scenario.gaps]),
+    }
+    if truth:  # the simulated systematic errors, so that estimated biases can be scored
+        biases: dict[str, dict[str, float]] = {}
+        for (sid, name), value in truth_biases(scenario).items():
+            biases.setdefault(sid, {})[name] = value
+        data['orbit_tracking.biases'] = yaml.safe_dump(biases)
+    return data
 
 
 def simulate_to_bag(
@@ -31,26 +50,15 @@ def simulate_to_bag(
     """Write a scenario's measurements, station states, telemetry and (optionally) truth
     to a new bag folder ``out``. Returns the number of messages written.
 
-    The bag's ``custom_data`` keeps the scenario name, epoch, world frame, gaps and (with
-    ``truth``) the simulated station biases (``orbit_tracking.biases``, YAML: station ->
-    bias name -> value), so evaluation tools find the truth without any other file.
+    The bag's ``custom_data`` is :func:`scenario_custom_data`.
     """
     result = simulate(scenario)
     stream = EventStream(result, batch_period=batch_period, truth=truth)
     timebase = TimeBase.from_seconds(scenario.epoch)
     moving = {sid for sid, s in result.station_states.items() if s.moving}
     with BagWriter(out, storage) as bag:
-        bag.set_custom_data('orbit_tracking.scenario', scenario.name)
-        bag.set_custom_data('orbit_tracking.epoch', repr(scenario.epoch))
-        bag.set_custom_data('orbit_tracking.world_frame', scenario.world_frame)
-        bag.set_custom_data(
-            'orbit_tracking.gaps', yaml.safe_dump([list(g) for g in scenario.gaps])
-        )
-        if truth:  # the simulated systematic errors, so that estimated biases can be scored
-            biases: dict[str, dict[str, float]] = {}
-            for (sid, name), value in truth_biases(scenario).items():
-                biases.setdefault(sid, {})[name] = value
-            bag.set_custom_data('orbit_tracking.biases', yaml.safe_dump(biases))
+        for key, value in scenario_custom_data(scenario, truth).items():
+            bag.set_custom_data(key, value)
         for ev in tqdm(
             stream, total=len(stream), unit='msg', disable=not progress, desc=scenario.name
         ):

@@ -5,9 +5,10 @@ its ``stations`` parameter (or of every station that appears), to ``telemetry/st
 ``triangulation/fixes`` (the rough trajectory when there is no telemetry). It buffers them
 by stamp and solves a window of ``window_length`` seconds once the newest stamp is
 ``latency`` seconds past the window's end, on the ``~/solve`` service (``std_srvs/Trigger``:
-solve what is buffered now), and when no measurement has arrived for ``flush_after`` wall
-seconds (end of the stream). Consecutive windows overlap by ``window_overlap`` seconds and
-each starts from the previous solution.
+solve what is buffered now), and when no input message (measurements, states, telemetry,
+fixes) has arrived for ``flush_after`` wall seconds (end of the stream; the fixes of the
+stream's tail come last, after the triangulation node's own flush). Consecutive windows
+overlap by ``window_overlap`` seconds and each starts from the previous solution.
 
 Publishes each window's fitted states with covariance on ``estimator/window_states``
 (``sensor_msgs/PointCloud2``, internal: see docs/CONTRACT.md) and ``/diagnostics``. With
@@ -256,8 +257,8 @@ class EstimatorNode(StationInputs):
             self,
             'flush_after',
             2.0,
-            'Wall seconds without new measurements after which what is buffered is solved '
-            '(end of the stream).',
+            'Wall seconds without any input message (measurements, telemetry, fixes) after '
+            'which what is buffered is solved (end of the stream).',
             read_only=True,
             min_value=0.1,
             max_value=3600.0,
@@ -331,6 +332,7 @@ class EstimatorNode(StationInputs):
         tb = self._timebase(stamp_ns(msg.header.stamp))
         if not self._in_time('telemetry', stamp_ns(msg.header.stamp)):
             return
+        self.last_data = time.monotonic()
         try:
             s = odometry_to_target_state(msg, tb)
             if self.target_id >= 0 and s.target_id != self.target_id:
@@ -351,6 +353,7 @@ class EstimatorNode(StationInputs):
         tb = self._timebase(stamp_ns(msg.header.stamp))
         if not self._in_time('fixes', stamp_ns(msg.header.stamp)):
             return
+        self.last_data = time.monotonic()  # the tail's fixes follow the measurements
         t, p, c = msg_to_fix(msg, tb)
         try:
             self.buffer.add_fix(max(self.target_id, 0), t, p, c)

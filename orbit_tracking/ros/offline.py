@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -36,8 +36,10 @@ from orbit_tracking.core.fixes import (
     TimedFix,
     TriangulationPipeline,
     fix_series,
+    parse_stamp,
     write_fixes_csv,
 )
+from orbit_tracking.core.knots import KnotConfig
 from orbit_tracking.core.metrics import NeesSummary, hermite_states, nees, nees_summary
 from orbit_tracking.core.observations import Observations
 from orbit_tracking.core.scenario import load_scenario
@@ -58,6 +60,8 @@ from orbit_tracking.ros.conversions import (
     TimeBase,
     biases_to_diagnostics,
     cloud_to_measurements,
+    cloud_to_window_states,
+    diagnostics_to_biases,
     fix_to_msg,
     msg_to_fix,
     odometry_to_station_state,
@@ -70,9 +74,14 @@ from orbit_tracking.ros.conversions import (
 __all__ = [
     'BagContext',
     'EstimationReport',
+    'RecordingReport',
     'TriangulationReport',
+    'bag_message_counts',
     'estimate_bag',
+    'estimator_configs',
+    'read_for_estimation',
     'triangulate_bag',
+    'write_recorded_outputs',
 ]
 
 
@@ -425,32 +434,45 @@ class EstimationReport:
             out.append('input: ' + ', '.join(f'{k} {v}' for k, v in sorted(self.counts.items())))
         for span, why in self.failures:
             out.append(f'window [{span[0]:.3f}, {span[1]:.3f}] s failed: {why}')
-        for tid, parts in self.evaluation.items():
-            for where, ev in parts.items():
-                out.append(
-                    f'target {tid} vs truth {where.replace("_", " ")} ({int(ev["n"])} states): '
-                    f'position RMS {ev["rms_position_m"]:.3f} m (mean '
-                    f'{ev["mean_position_m"]:.3f} m), velocity RMS '
-                    f'{ev["rms_velocity_m_s"]:.4f} m/s (mean {ev["mean_velocity_m_s"]:.4f} '
-                    f'm/s), mean NEES {ev["mean_nees_position"]:.2f} (position, 3 dof), '
-                    f'{ev["mean_nees_state"]:.2f} (state, 6 dof)'
-                )
+        out += _evaluation_lines(self.evaluation)
         out += self.bias_notes
-        per_station: dict[str, list[str]] = {}
-        for b in self.biases:
-            text = f'{b.name} {b.value:.6g} +- {b.sigma:.3g}'
-            ev = self.bias_evaluation.get((b.station, b.name))
-            if ev is not None:
-                text += f' (truth {ev["truth"]:.6g}, z {ev["z"]:+.2f})'
-            if b.status != 'estimated':
-                text += f' [{b.status.split(":")[0]}]'
-            per_station.setdefault(b.station, []).append(text)
-        for sid, texts in per_station.items():
-            out.append(f'biases {sid}: ' + ', '.join(texts))
+        out += _bias_lines(self.biases, self.bias_evaluation)
         return out
 
 
-def _read_for_estimation(
+def _evaluation_lines(evaluation: dict[int, dict[str, dict[str, float]]]) -> list[str]:
+    """One line per target and part (outside / inside gaps) of :func:`_evaluate`'s figures."""
+    out = []
+    for tid, parts in evaluation.items():
+        for where, ev in parts.items():
+            out.append(
+                f'target {tid} vs truth {where.replace("_", " ")} ({int(ev["n"])} states): '
+                f'position RMS {ev["rms_position_m"]:.3f} m (mean '
+                f'{ev["mean_position_m"]:.3f} m), velocity RMS '
+                f'{ev["rms_velocity_m_s"]:.4f} m/s (mean {ev["mean_velocity_m_s"]:.4f} '
+                f'm/s), mean NEES {ev["mean_nees_position"]:.2f} (position, 3 dof), '
+                f'{ev["mean_nees_state"]:.2f} (state, 6 dof)'
+            )
+    return out
+
+
+def _bias_lines(
+    biases: Sequence[BiasEstimate], evaluation: dict[tuple[str, str], dict[str, float]]
+) -> list[str]:
+    """One line per station: its final biases, with truth and z when known."""
+    per_station: dict[str, list[str]] = {}
+    for b in biases:
+        text = f'{b.name} {b.value:.6g} +- {b.sigma:.3g}'
+        ev = evaluation.get((b.station, b.name))
+        if ev is not None:
+            text += f' (truth {ev["truth"]:.6g}, z {ev["z"]:+.2f})'
+        if b.status != 'estimated':
+            text += f' [{b.status.split(":")[0]}]'
+        per_station.setdefault(b.station, []).append(text)
+    return [f'biases {sid}: ' + ', '.join(texts) for sid, texts in per_station.items()]
+
+
+def read_for_estimation(
     bag: str | Path, ctx: BagContext, progress: bool
 ) -> tuple[ObservationBuffer, Counter[str]]:
     """Measurements, station states, telemetry and fixes of a bag into a buffer (what the
@@ -558,6 +580,40 @@ def _window_summary(e: Estimate) -> dict[str, object]:
     }
 
 
+_KNOT_PARAMETERS = (
+    'degree',
+    'base_spacing',
+    'gap_spacing',
+    'delta_position',
+    'delta_velocity',
+    'solver',
+    'sparse',
+)
+
+
+def estimator_configs(
+    parameters: Mapping[str, Any],
+) -> tuple[EstimatorConfig, WindowConfig, str]:
+    """The settings of :func:`estimate_bag` that match an estimator node started with
+    ``parameters`` (its parameter names; missing ones keep the defaults, which are the
+    node's): ``(estimator config, window config, bias_file)``."""
+    p = parameters
+    knots = KnotConfig(**{k: p[k] for k in _KNOT_PARAMETERS if k in p})
+    est = EstimatorConfig(
+        knots=knots,
+        **{k: p[k] for k in ('knot_method', 'use_telemetry', 'gate_sigma') if k in p},
+    )
+    names = {'window_length': 'length', 'window_overlap': 'overlap'}
+    win = WindowConfig(
+        **{
+            names.get(k, k): float(p[k])
+            for k in ('window_length', 'window_overlap', 'latency', 'output_step')
+            if k in p
+        }
+    )
+    return est, win, str(p.get('bias_file') or '')
+
+
 def estimate_bag(
     bag: str | Path,
     out: str | Path,
@@ -603,7 +659,7 @@ def estimate_bag(
     win_cfg = win_cfg or WindowConfig()
     decl = load_bias_declaration(biases) if isinstance(biases, str) else biases
     ctx = BagContext.from_custom_data(bag)
-    buf, counts = _read_for_estimation(bag, ctx, progress)
+    buf, counts = read_for_estimation(bag, ctx, progress)
     obs = buf.observations()
     if buf.withheld:
         counts['no_station_state'] += sum(buf.withheld.values())
@@ -661,7 +717,7 @@ def estimate_bag(
         for tid in targets:
             files.append(out / f'trajectory_target_{tid}.csv')
             write_trajectory_csv(files[-1], *tracks[tid], tb.ref_ns)
-    final = _final_biases(estimates)
+    final = _final_biases([(e.t0, e.t1, e.biases) for e in estimates])
     files.append(out / 'biases.csv')
     write_biases_csv(files[-1], [b for b, _ in final])
     files.append(out / 'biases_by_window.csv')
@@ -769,31 +825,313 @@ def estimate_bag(
         'evaluation': report.evaluation,
     }
     if est_cfg.biases:
-        summary['biases'] = _bias_summary(report, final)
+        summary['biases'] = _bias_summary(ctx, final, bias_notes, report.bias_evaluation)
     (out / 'summary.yaml').write_text(yaml.safe_dump(summary, sort_keys=False))
     files.append(out / 'summary.yaml')
     return report
 
 
-def _final_biases(estimates: list[Estimate]) -> list[tuple[BiasEstimate, Estimate]]:
+# ---------------------------------------------------------------------------------------
+# the outputs of a live run, recorded
+
+
+def bag_message_counts(bag: str | Path) -> dict[str, int]:
+    """Messages per topic (leading ``/`` dropped), from the bag's ``metadata.yaml``."""
+    meta = yaml.safe_load((Path(bag) / 'metadata.yaml').read_text())
+    info = meta.get('rosbag2_bagfile_information', {})
+    out: dict[str, int] = {}
+    for t in info.get('topics_with_message_count') or []:
+        name = str(t['topic_metadata']['name']).lstrip('/')
+        out[name] = out.get(name, 0) + int(t['message_count'])
+    return dict(sorted(out.items()))
+
+
+@dataclass
+class RecordingReport:
+    """Outcome of :func:`write_recorded_outputs`.
+
+    ``times``, ``state`` (m, 6) and ``covariance`` (m, 6, 6) are the states the results
+    node published for ``target_id`` (the lowest id); the covariance holds the position and
+    velocity blocks only (``nav_msgs/Odometry`` has no room for their correlation).
+    ``windows`` are the estimator's windows as ``summary.yaml`` lists them.
+    """
+
+    target_id: int
+    times: np.ndarray
+    state: np.ndarray
+    covariance: np.ndarray
+    windows: list[dict[str, Any]]
+    context: BagContext
+    recorded: dict[str, int]
+    files: list[Path]
+    duplicates: int = 0
+    evaluation: dict[int, dict[str, dict[str, float]]] = field(default_factory=dict)
+    biases: tuple[BiasEstimate, ...] = ()
+    bias_evaluation: dict[tuple[str, str], dict[str, float]] = field(default_factory=dict)
+
+    def lines(self) -> list[str]:
+        """Human-readable summary."""
+        solved = [w for w in self.windows if w['success']]
+        converged = sum(bool(w.get('converged')) for w in solved)
+        chi2 = [float(w['chi2_dof']) for w in solved if 'chi2_dof' in w]
+        out = [
+            f'{len(self.windows)} windows of the estimator node: {len(solved)} solved '
+            f'({converged} converged as its diagnostics tell), {len(self.windows) - len(solved)} '
+            'failed' + (f'; chi2/dof {min(chi2):.3f}-{max(chi2):.3f}' if chi2 else ''),
+            f'{self.times.size} final states of target {self.target_id} from the results node'
+            + (f' from {self.times[0]:.3f} s to {self.times[-1]:.3f} s' if self.times.size else '')
+            + (f' ({self.duplicates} published twice, kept once)' if self.duplicates else ''),
+        ]
+        for w in self.windows:
+            if not w['success']:
+                out.append(f'window [{w["start"]:.3f}, {w["end"]:.3f}] s failed: {w["error"]}')
+        out += _evaluation_lines(self.evaluation)
+        out += _bias_lines(self.biases, self.bias_evaluation)
+        return out
+
+
+_RECORDED_OUTPUTS = (
+    'trajectory/states',
+    'estimator/window_states',
+    'trajectory/biases',
+    'diagnostics',
+    'truth/state',
+)
+_ESTIMATOR_STATUS = 'estimator: windows'
+_WINDOW_REJECT_REASONS = ('residual_gate', 'not_measured')
+
+
+def _window_row(kv: Mapping[str, str]) -> dict[str, Any]:
+    """What the estimator's diagnostics say about its last window, as summary.yaml's
+    window entries of ``orbit-tracking estimate`` spell it."""
+
+    def num(key: str, kind: type = float) -> Any:
+        try:
+            return kind(float(kv[key]))
+        except (KeyError, ValueError):
+            return None
+
+    message = kv.get('last_window_status', '')
+    row: dict[str, Any] = {'message': message, 'converged': message.startswith('converged')}
+    for key, name, kind in (
+        ('last_iterations', 'iterations', int),
+        ('last_halvings', 'halvings', int),
+        ('last_chi2_dof', 'chi2_dof', float),
+        ('last_parameters', 'parameters', int),
+        ('last_condition', 'condition', float),
+        ('last_knot_time_s', 'knot_time_s', float),
+        ('last_gauss_newton_time_s', 'solve_time_s', float),
+        ('last_solve_wall_s', 'solve_wall_s', float),
+    ):
+        v = num(key, kind)
+        if v is not None:
+            row[name] = v
+    row['used'] = {k[5:]: int(v) for k, v in sorted(kv.items()) if k.startswith('used_')}
+    row['rejected'] = {
+        f'{k[9 : -len(why) - 1]}/{why}': int(v)
+        for k, v in sorted(kv.items())
+        for why in _WINDOW_REJECT_REASONS
+        if k.startswith('rejected_') and k.endswith('_' + why)
+    }
+    return row
+
+
+def write_recorded_outputs(
+    bag: str | Path,
+    out: str | Path,
+    config: Mapping[str, Any] | None = None,
+    extra: Mapping[str, Any] | None = None,
+) -> RecordingReport:
+    """Write the output files of ``orbit-tracking estimate`` from a bag recorded from the
+    live nodes: the results node's ``trajectory/states``, the estimator's
+    ``estimator/window_states``, ``trajectory/biases`` and ``/diagnostics``, and
+    ``truth/state`` when it was published.
+
+    Writes to ``out`` (created):
+
+    * ``trajectory.csv`` (contract columns) of the lowest target id; with several targets
+      also ``trajectory_target_<id>.csv``;
+    * ``biases.csv`` and ``biases_by_window.csv`` (header only without biases);
+    * ``summary.yaml``: the bag, its scenario, ``config`` (the estimator's parameters), the
+      messages recorded per topic, the windows (span, states, and what the estimator's
+      diagnostics said of each: solver message, iterations, chi2/dof, values used and
+      rejected), the errors against truth outside and inside the bag's gaps as
+      ``orbit-tracking estimate`` computes them (the 6-dof NEES with the position-velocity
+      correlation left out, as Odometry carries it), the biases, then ``extra``.
+
+    Times are on the bag's time base (its ``orbit_tracking.epoch``, else the whole second
+    of its first output stamp).
+
+    Raises
+    ------
+    OrbitTrackingError
+        The bag holds no ``trajectory/states``.
+    """
+    ctx = BagContext.from_custom_data(bag)
+    recorded = bag_message_counts(bag)
+    states: dict[int, dict[int, tuple[np.ndarray, np.ndarray]]] = {}
+    spans: dict[tuple[int, int], tuple[float, float, int]] = {}
+    diag_raw: list[tuple[int, float, float, dict[str, str]]] = []
+    bias_windows: dict[tuple[int, int], tuple[float, float, tuple[BiasEstimate, ...]]] = {}
+    truth: list[Any] = []
+    duplicates = 0
+
+    def key(t0: float, t1: float) -> tuple[int, int]:
+        return round(t0 * 1e6), round(t1 * 1e6)  # microseconds: '%.9g' diagnostics agree
+
+    for m in read_bag(bag, _RECORDED_OUTPUTS):
+        topic = m.topic.lstrip('/')
+        if topic == 'diagnostics':
+            for st in m.msg.status:
+                kv = {v.key: v.value for v in st.values}
+                if st.name != _ESTIMATOR_STATUS or not kv.get('last_window_end'):
+                    continue
+                try:
+                    ref = parse_stamp(kv['time_reference_s'])
+                    a, b = float(kv['last_window_start']), float(kv['last_window_end'])
+                except (KeyError, ValueError):
+                    continue
+                diag_raw.append((ref, a, b, kv))
+            continue
+        tb = ctx.tb(stamp_ns(m.msg.header.stamp))
+        if topic == 'trajectory/states':
+            s = odometry_to_target_state(m.msg, tb)
+            cov = np.zeros((6, 6))
+            cov[:3, :3], cov[3:, 3:] = s.position_cov, s.velocity_cov
+            same_target = states.setdefault(s.target_id, {})
+            ns = stamp_ns(m.msg.header.stamp)
+            if ns in same_target:
+                duplicates += 1
+                continue
+            same_target[ns] = (np.concatenate([s.position, s.velocity]), cov)
+            ctx.world_frame = ctx.world_frame or m.msg.header.frame_id
+        elif topic == 'estimator/window_states':
+            ws = cloud_to_window_states(m.msg, tb)
+            spans[key(ws.t0, ws.t1)] = (ws.t0, ws.t1, int(ws.time.size))
+            ctx.world_frame = ctx.world_frame or ws.world_frame
+        elif topic == 'trajectory/biases':
+            biases = diagnostics_to_biases(m.msg)
+            kv = {v.key: v.value for st in m.msg.status for v in st.values}
+            if biases and 'window_start' in kv and 'window_end' in kv:
+                a = (parse_stamp(kv['window_start']) - tb.ref_ns) * 1e-9
+                b = (parse_stamp(kv['window_end']) - tb.ref_ns) * 1e-9
+                bias_windows[key(a, b)] = (a, b, biases)
+        elif topic == 'truth/state':
+            truth.append(odometry_to_target_state(m.msg, tb))
+    if not states:
+        raise OrbitTrackingError(
+            f'{bag} holds no trajectory/states: the results node published nothing '
+            "(see its log and the estimator's)"
+        )
+    ctx.truth.update(_truth_states(truth))
+    tb = ctx.timebase or TimeBase(0)
+    diag: dict[tuple[int, int], dict[str, str]] = {}
+    for ref, a, b, kv in diag_raw:  # on the estimator's time base: moved onto ours
+        shift = (ref - tb.ref_ns) * 1e-9
+        diag[key(a + shift, b + shift)] = kv
+    tracks: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+    for tid, by_stamp in sorted(states.items()):
+        stamps = sorted(by_stamp)
+        tracks[tid] = (
+            (np.array(stamps, dtype=np.int64) - tb.ref_ns) * 1e-9,
+            np.array([by_stamp[n][0] for n in stamps]),
+            np.array([by_stamp[n][1] for n in stamps]),
+        )
+    windows: list[dict[str, Any]] = []
+    for k, (a, b, n) in spans.items():
+        row = {'start': round(a, 9), 'end': round(b, 9), 'success': True, 'states': n}
+        windows.append({**row, **_window_row(diag.get(k, {}))})
+    for k, kv in diag.items():
+        status = kv.get('last_window_status', '')
+        if k not in spans and status.startswith('failed'):
+            windows.append(
+                {'start': k[0] * 1e-6, 'end': k[1] * 1e-6, 'success': False, 'error': status}
+            )
+    windows.sort(key=lambda w: (w['start'], w['end']))
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    main = min(tracks)
+    files = [out / 'trajectory.csv']
+    write_trajectory_csv(files[0], *tracks[main], tb.ref_ns)
+    if len(tracks) > 1:
+        for tid, (tt, x, cov) in tracks.items():
+            files.append(out / f'trajectory_target_{tid}.csv')
+            write_trajectory_csv(files[-1], tt, x, cov, tb.ref_ns)
+    by_window = sorted(bias_windows.values(), key=lambda w: (w[0], w[1]))
+    final = _final_biases(by_window)
+    files.append(out / 'biases.csv')
+    write_biases_csv(files[-1], [b for b, _ in final])
+    files.append(out / 'biases_by_window.csv')
+    write_biases_by_window_csv(files[-1], by_window, tb.ref_ns)
+    t_main, x_main, c_main = tracks[main]
+    report = RecordingReport(
+        main,
+        t_main,
+        x_main,
+        c_main,
+        windows,
+        ctx,
+        recorded,
+        files,
+        duplicates,
+        biases=tuple(b for b, _ in final),
+    )
+    for tid, (tt, x, cov) in tracks.items():
+        if tid in ctx.truth and tt.size:
+            ev = _evaluate(ctx, tid, tt, x, cov)
+            if ev:
+                report.evaluation[tid] = ev
+    solved = [w for w in windows if w['success']]
+    summary: dict[str, Any] = {
+        'bag': str(bag),
+        'scenario': ctx.scenario,
+        'source': 'trajectory/states of the results node, recorded over DDS',
+        'config': dict(config or {}),
+        'recorded': recorded,
+        'totals': {
+            'windows': len(windows),
+            'solved': len(solved),
+            'converged': int(sum(bool(w.get('converged')) for w in solved)),
+            'failed': len(windows) - len(solved),
+            'output_states': int(t_main.size),
+            'states_published_twice': duplicates,
+        },
+        'windows': windows,
+        'evaluation': report.evaluation,
+    }
+    if final:
+        summary['biases'] = _bias_summary(ctx, final, [], report.bias_evaluation)
+    summary.update(extra or {})
+    (out / 'summary.yaml').write_text(yaml.safe_dump(summary, sort_keys=False))
+    files.append(out / 'summary.yaml')
+    return report
+
+
+def _final_biases(
+    windows: Sequence[tuple[float, float, Sequence[BiasEstimate]]],
+) -> list[tuple[BiasEstimate, Span]]:
     """Each (station, bias) from the last window that has it (the final window for a
-    station that measures to the end), in the order of the bias names."""
-    last: dict[tuple[str, str], tuple[BiasEstimate, Estimate]] = {}
-    for e in sorted(estimates, key=lambda e: (e.t0, e.t1)):
-        for b in e.biases:
-            last[(b.station, b.name)] = (b, e)
+    station that measures to the end), in the order of the bias names; ``windows`` are
+    ``(t0, t1, biases)``."""
+    last: dict[tuple[str, str], tuple[BiasEstimate, Span]] = {}
+    for t0, t1, biases in sorted(windows, key=lambda w: (w[0], w[1])):
+        for b in biases:
+            last[(b.station, b.name)] = (b, (t0, t1))
     order = {n: i for i, n in enumerate(ESTIMABLE_BIASES)}
     return [last[k] for k in sorted(last, key=lambda k: (k[0], order[k[1]]))]
 
 
 def _bias_summary(
-    report: EstimationReport, final: list[tuple[BiasEstimate, Estimate]]
+    ctx: BagContext,
+    final: list[tuple[BiasEstimate, Span]],
+    notes: Sequence[str],
+    evaluation: dict[tuple[str, str], dict[str, float]],
 ) -> dict[str, object]:
-    """The ``biases`` section of summary.yaml; fills ``report.bias_evaluation``."""
-    ctx = report.context
+    """The ``biases`` section of summary.yaml; fills ``evaluation`` (errors against the
+    bag's simulated biases, when known)."""
     ctx.scenario_truth_biases()
     rows = []
-    for b, e in final:
+    for b, (t0, t1) in final:
         row: dict[str, object] = {
             'station': b.station,
             'field': b.name,
@@ -802,7 +1140,7 @@ def _bias_summary(
             'prior': float(b.prior),
             'prior_sigma': float(b.prior_sigma),
             'status': b.status,
-            'window': [float(e.t0), float(e.t1)],
+            'window': [float(t0), float(t1)],
         }
         if ctx.truth_biases is not None:
             truth = ctx.truth_biases.get((b.station, b.name), 0.0)
@@ -811,13 +1149,13 @@ def _bias_summary(
                 'error': float(b.value - truth),
                 'z': float((b.value - truth) / b.sigma),
             }
-            report.bias_evaluation[(b.station, b.name)] = ev
+            evaluation[(b.station, b.name)] = ev
             row.update(ev)
         rows.append(row)
-    out: dict[str, object] = {'final': rows, 'notes': list(report.bias_notes)}
+    out: dict[str, object] = {'final': rows, 'notes': list(notes)}
     if ctx.truth_biases is not None:
         z = [
-            abs(report.bias_evaluation[(b.station, b.name)]['z'])
+            abs(evaluation[(b.station, b.name)]['z'])
             for b, _ in final
             if b.status.startswith('estimated')
         ]

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import fnmatch
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 from rclpy.node import Node
@@ -43,13 +43,22 @@ class RecorderNode(Node):
     patterns : sequence of str
         fnmatch patterns of fully qualified topic names.
     storage : {'mcap', 'sqlite3'}
+    custom_data : mapping of str to str, optional
+        Written into the bag's metadata (rosbag2 ``custom_data``), e.g. the scenario labels
+        of :func:`~orbit_tracking.ros.bagsim.scenario_custom_data`.
     """
 
     def __init__(
-        self, out: str | Path, patterns: Sequence[str] = DEFAULT_TOPICS, storage: str = 'mcap'
+        self,
+        out: str | Path,
+        patterns: Sequence[str] = DEFAULT_TOPICS,
+        storage: str = 'mcap',
+        custom_data: Mapping[str, str] | None = None,
     ) -> None:
         super().__init__('orbit_tracking_recorder')
         self.bag = BagWriter(out, storage)
+        for key, value in (custom_data or {}).items():
+            self.bag.set_custom_data(key, value)
         self.patterns = tuple(patterns)
         self.subs: dict[str, object] = {}
         self.counts: dict[str, int] = {}

@@ -18,20 +18,21 @@ from orbit_tracking.core.errors import ConfigError
 from orbit_tracking.core.scenario import load_scenario
 from orbit_tracking.report import RunContext, context_from_scenario
 from orbit_tracking.ros.bag import read_bag
-from orbit_tracking.ros.offline import BagContext, _read_for_estimation
+from orbit_tracking.ros.offline import BagContext, read_for_estimation
 
 __all__ = ['context_from_bag', 'find_input_bag', 'output_world_frame', 'report_context']
 
 
 def find_input_bag(folder: Path, summary: Mapping[str, Any] | None) -> Path | None:
     """The bag ``summary.yaml`` names (as given to ``estimate``: relative to the working
-    directory then, so also tried next to the folder, e.g. a demo run's ``bag/`` beside its
-    ``estimate/``); None if not found."""
+    directory then, so also tried next to the folder, e.g. a demo run's ``offline/bag/``
+    beside its ``offline/estimate/``, and inside it, e.g. a demo run's ``live_bag/``); None
+    if not found."""
     name = (summary or {}).get('bag')
     if not name:
         return None
     p = Path(str(name))
-    others = [folder.parent / p, folder.parent / p.name]
+    others = [folder.parent / p, folder.parent / p.name, folder / p.name]
     for cand in [p] if p.is_absolute() else [p, *others]:
         if (cand / 'metadata.yaml').is_file():
             return cand
@@ -42,7 +43,7 @@ def context_from_bag(bag: str | Path) -> RunContext:
     """Measurements, station poses, truth (``truth/state``) and the simulated biases of a
     bag, on the time base ``orbit-tracking estimate`` used for it."""
     ctx = BagContext.from_custom_data(bag)
-    buf, _counts = _read_for_estimation(bag, ctx, progress=False)
+    buf, _counts = read_for_estimation(bag, ctx, progress=False)
     ctx.scenario_truth_biases()
     return RunContext(
         ctx.tb(0).ref_ns,
