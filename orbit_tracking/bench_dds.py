@@ -292,10 +292,10 @@ def _one_rate(
 
     length, overlap, latency = windows
     remap = ['-r', f'__ns:={ns}', '-r', f'/diagnostics:={ns}/diagnostics']
-    common = {'flush_after': 1.0, 'time_reference': epoch}
+    common = {'time_reference': epoch}
     procs = {
         'triangulation': _start(
-            _node('triangulation_node', {'lag': 0.5, **common}) + remap,
+            _node('triangulation_node', {'lag': 0.5, 'flush_after': 1.0, **common}) + remap,
             logs / f'triangulation_{rate:g}.log',
         ),
         'estimator': _start(
@@ -305,6 +305,7 @@ def _one_rate(
                     'window_length': length,
                     'window_overlap': overlap,
                     'latency': latency,
+                    'flush_after': 2.0,  # after the triangulation's: its tail fixes come last
                     **common,
                 },
             )

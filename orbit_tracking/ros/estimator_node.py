@@ -256,9 +256,10 @@ class EstimatorNode(StationInputs):
         self.flush_after = declare(
             self,
             'flush_after',
-            2.0,
+            4.0,
             'Wall seconds without any input message (measurements, telemetry, fixes) after '
-            'which what is buffered is solved (end of the stream).',
+            'which what is buffered is solved (end of the stream). Keep it above the '
+            "triangulation node's flush_after: the tail's fixes come after that.",
             read_only=True,
             min_value=0.1,
             max_value=3600.0,
