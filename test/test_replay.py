@@ -4,8 +4,10 @@ goes back, and a smoke run of the DDS throughput benchmark."""
 from __future__ import annotations
 
 import dataclasses
+import math
 import signal
 import sys
+import time
 import types
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -295,8 +297,6 @@ def test_late_station_states_are_waited_for_not_dropped(tmp_path):
 
 def test_a_stream_is_quiet_only_after_the_node_waited_for_it():
     """``silent_after`` counts time spent waiting for data, not time spent working."""
-    import time
-
     from orbit_tracking.ros.triangulation_node import TriangulationNode
 
     with default_context(silent_after=0.2):
@@ -343,4 +343,38 @@ def test_estimator_windows_wait_for_a_late_station(tmp_path):
             assert lag > 7.0
             assert node._horizon() == pytest.approx(newest - lag, abs=0.3)
         finally:
+            node.destroy_node()
+
+
+def test_estimator_without_telemetry_waits_for_the_first_fix(tmp_path):
+    """No telemetry: the rough trajectory is the fixes. While a triangulation node is up
+    but has sent none yet (started late, starved of CPU), windows are not due."""
+    import rclpy
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+
+    from orbit_tracking.ros.conversions import TimeBase, fix_to_msg
+    from orbit_tracking.ros.estimator_node import EstimatorNode
+
+    (tmp_path / 'q2.yaml').write_text(SHORT_Q2)
+    events = _events(tmp_path / 'q2.yaml')
+    with default_context(window_length=10.0, window_overlap=2.0):
+        node = EstimatorNode()
+        node._solve_due = lambda final: []  # the horizon only; no solve
+        other = rclpy.create_node('fake_triangulation')
+        try:
+            for ev, msg in events:
+                _feed(node, ev, msg)
+            assert node._horizon() > 15.0  # nobody publishes fixes: nothing to wait for
+            other.create_publisher(PoseWithCovarianceStamped, 'triangulation/fixes', 10)
+            deadline = time.monotonic() + 10.0
+            while node.count_publishers('triangulation/fixes') < 1:
+                assert time.monotonic() < deadline, 'the publisher never appeared'
+                time.sleep(0.05)
+            assert node._horizon() == -math.inf
+            tb = TimeBase.from_seconds(load_scenario(tmp_path / 'q2.yaml').epoch)
+            node._on_fix(fix_to_msg('eci', 52.0, np.ones(3), np.eye(3), tb))
+            # from then on the fixes are a stream like the others: the late one holds
+            assert node._horizon() == pytest.approx(52.0 - 50.0)
+        finally:
+            other.destroy_node()
             node.destroy_node()

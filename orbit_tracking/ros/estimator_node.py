@@ -421,9 +421,25 @@ class EstimatorNode(StationInputs):
         """Data time every delivering stream has reached (see StationInputs): a window is
         due once this passes its end by ``latency``, so a topic that fell behind while we
         were solving is waited for instead of being cut off."""
+        if self._awaiting_first_fix():
+            return -math.inf
         latest = self.buffer.latest_time()
         live = self._delivering()
         return min(latest, *live.values()) if live and math.isfinite(latest) else latest
+
+    def _awaiting_first_fix(self) -> bool:
+        """Without telemetry or a previous window, a window's rough trajectory is the
+        triangulation node's fixes. While that node is up (a publisher on
+        ``triangulation/fixes``) but has not sent one yet (it started late or is starved
+        of CPU), windows wait for it rather than fail; the end of the stream solves them
+        regardless."""
+        if self.previous:
+            return False
+        for stream in ('telemetry', 'fixes'):
+            gen = self._streams.get(stream)
+            if gen is not None and gen[0] == self._generation:
+                return False
+        return self.count_publishers('triangulation/fixes') > 0
 
     def _solve(self, span: Span, tb: TimeBase) -> bool:
         t0, t1 = span
