@@ -72,8 +72,10 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
 def _cmd_record(args: argparse.Namespace) -> int:
     import rclpy
+    from rclpy.executors import ExternalShutdownException
 
     from orbit_tracking.ros.recorder import DEFAULT_TOPICS, RecorderNode
+    from orbit_tracking.ros.runner import context_goes_down
 
     labels: dict[str, str] = {}
     if args.scenario:
@@ -101,8 +103,11 @@ def _cmd_record(args: argparse.Namespace) -> int:
                 and now - node.last_message >= args.idle
             ):
                 break
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RuntimeError:
+        if not context_goes_down():  # see run_node: Ctrl-C inside a message conversion
+            raise
     finally:
         node.close()
         total = sum(node.counts.values())

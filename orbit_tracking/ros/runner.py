@@ -14,13 +14,15 @@ from rclpy.publisher import Publisher
 
 from orbit_tracking.core.errors import OrbitTrackingError
 
-__all__ = ['ready_to_stream', 'run_node']
+__all__ = ['context_goes_down', 'ready_to_stream', 'run_node']
 
 SHUTDOWN_GRACE_S = 2.0
 """How long a RuntimeError out of ``spin`` waits for a signal-driven shutdown to show."""
 
 
-def _context_goes_down(grace_s: float) -> bool:
+def context_goes_down(grace_s: float = SHUTDOWN_GRACE_S) -> bool:
+    """Whether rclpy's context is shut down within ``grace_s`` seconds (a RuntimeError out
+    of a spin during Ctrl-C is then part of the shutdown)."""
     deadline = time.monotonic() + grace_s
     while rclpy.ok():
         if time.monotonic() >= deadline:
@@ -67,7 +69,7 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> None
         # rclpy's C++ message conversion it surfaces as "Unable to convert call argument"
         # instead, possibly before that thread has run (seen under CI load). If the context
         # goes down shortly, it was a shutdown, not an error.
-        if not _context_goes_down(SHUTDOWN_GRACE_S):
+        if not context_goes_down(SHUTDOWN_GRACE_S):
             raise
     finally:
         if node is not None:
