@@ -314,3 +314,36 @@ def test_select_knots_drops_every_knot_of_a_polynomial_without_a_degenerate_lp()
     assert reduced.interior.size == 0
     assert np.max(np.abs(jumps)) < 1e-6
     assert info['status'] == 'negligible jumps'
+
+
+def test_rough_axis_sigma_rotates_the_covariance_into_the_frame():
+    n = 4
+    cov = np.zeros((n, 6, 6))
+    cov[:, :3, :3] = np.diag([1.0, 4.0, 9.0])
+    cov[:, 3:, 3:] = np.diag([0.01, 0.04, 0.09])
+    rot = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])  # axes: z, x, y
+    t = np.arange(n, dtype=float)
+    rough = RoughTrajectory('first solution', t, np.zeros((n, 3)), np.zeros((n, 3)), 1.0, 0.1, cov)
+    sd = rough.axis_sigma(rot)
+    assert sd is not None
+    np.testing.assert_allclose(sd[0], np.tile([3.0, 1.0, 2.0], (n, 1)))
+    np.testing.assert_allclose(sd[1], np.tile([0.3, 0.1, 0.2], (n, 1)))
+    assert RoughTrajectory('fixes', t, np.zeros((n, 3)), None, 1.0, 0.0).axis_sigma(rot) is None
+
+
+def test_select_knots_accepts_any_spline_within_three_sigma_of_an_estimate():
+    """A first solution wiggles about the truth within its own uncertainty (here 2 m
+    with 1 m sigma); held to its white-noise fit tolerance the selection keeps knots for
+    the wiggle, given the estimate's sigma it keeps none."""
+    from orbit_tracking.core.bspline import SplineAxis
+
+    ax = SplineAxis.from_interior(np.arange(1.0, 20.0, 0.5), 0.0, 20.0, 4)
+    t = np.linspace(0.0, 20.0, 401)
+    y = 3.0 + 200.0 * t - 4.0 * t**2 + 0.02 * t**3 + 2.0 * np.sin(2 * np.pi * t / 4.0)
+    coef = ax.fit(t, y, ridge=0.0)
+    cov = np.eye(ax.n_coef) * 1e-4
+    tight, _, _ = select_knots(ax, coef, cov, t, KnotConfig())
+    floor = (np.full(t.size, 1.0), np.full(t.size, 10.0))
+    loose, _, _ = select_knots(ax, coef, cov, t, KnotConfig(), floor=floor)
+    assert tight.interior.size >= 10
+    assert loose.interior.size == 0

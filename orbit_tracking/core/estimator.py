@@ -1311,7 +1311,9 @@ def estimate(
             sv_ = float(np.sqrt(np.median(np.trace(pc[:, 3:, 3:], axis1=1, axis2=2)) / 3))
             if not (np.isfinite(sp_) and np.isfinite(sv_) and sp_ > 0.0 and sv_ > 0.0):
                 continue  # a degenerate first solution: keep the knots from the fixes
-            rough2 = RoughTrajectory('first solution', tt, x[:, :3], x[:, 3:], sp_, sv_)
+            rough2 = RoughTrajectory(
+                'first solution', tt, x[:, :3], x[:, 3:], sp_, sv_, covariance=pc
+            )
             sel2 = _choose_knots_safely(
                 rough2,
                 t0,

@@ -143,6 +143,9 @@ class RoughTrajectory:
     ``velocity`` is None when the source gives positions only (fixes).
     ``position_noise`` / ``velocity_noise`` are the white-noise levels estimated from
     the samples themselves (the reported sigmas of telemetry include slow drifts).
+    ``covariance`` (n, 6, 6), world frame, is given when the samples are themselves an
+    estimate (a first solution): their errors are smooth and correlated in time, not
+    white, and the knot selection then accepts any spline within 3 sigma of them.
     """
 
     source: str
@@ -151,6 +154,17 @@ class RoughTrajectory:
     velocity: FloatArray | None
     position_noise: float
     velocity_noise: float
+    covariance: FloatArray | None = None
+
+    def axis_sigma(self, rotation: FloatArray) -> tuple[FloatArray, FloatArray] | None:
+        """Standard deviations (n, 3) of position and velocity along the axes of a frame
+        whose axes are the columns of ``rotation``, from :attr:`covariance`."""
+        if self.covariance is None:
+            return None
+        c = self.covariance
+        pp = np.einsum('ia,nij,jb->nab', rotation, c[:, :3, :3], rotation)
+        vv = np.einsum('ia,nij,jb->nab', rotation, c[:, 3:, 3:], rotation)
+        return _diag_sd(pp), _diag_sd(vv)
 
     def __len__(self) -> int:
         return int(self.time.shape[0])
@@ -164,6 +178,11 @@ class RoughTrajectory:
             g = np.gradient(self.position, self.time, axis=0) if len(self) > 1 else 0 * p
             v = np.stack([np.interp(t, self.time, g[:, c]) for c in range(3)], 1)
         return np.hstack([p, v])
+
+
+def _diag_sd(m: FloatArray) -> FloatArray:
+    """Square roots of the diagonals of a stack of covariances (n, k, k) -> (n, k)."""
+    return np.sqrt(np.maximum(np.diagonal(m, axis1=1, axis2=2), 0.0))
 
 
 def _noise_level(y: FloatArray) -> float:
@@ -444,6 +463,7 @@ def select_knots(
     times: FloatArray,
     cfg: KnotConfig,
     fixed: Sequence[float] = (),
+    floor: tuple[FloatArray, FloatArray] | None = None,
 ) -> tuple[SplineAxis, FloatArray, dict[str, float | str]]:
     """Seed 000's sparse optimisation (eq. 14) on one axis.
 
@@ -454,6 +474,10 @@ def select_knots(
         Where the fit tolerances are enforced (the rough trajectory's epochs).
     fixed : sequence of float
         Knots never dropped (events).
+    floor : (ndarray, ndarray), optional
+        Standard deviations of the rough trajectory's position and velocity on this axis
+        at ``times`` (an estimate's own uncertainty); the tolerances are at least 3 times
+        these.
 
     Returns
     -------
@@ -472,12 +496,16 @@ def select_knots(
     if fixed_arr.size:
         cand &= np.min(np.abs(tau[:, None] - fixed_arr[None, :]), axis=1) > 1e-9
     c = c_all[np.flatnonzero(cand)]
-    times = _constraint_times(ax, np.asarray(times, dtype=np.float64))
+    all_times = np.asarray(times, dtype=np.float64)
+    times = _constraint_times(ax, all_times)
     k0, k1 = ax.design(times), ax.design(times, 1)
     sd0 = np.sqrt(np.maximum(np.einsum('ij,ji->i', (k0 @ cov), k0.T.toarray()), 0.0))
     sd1 = np.sqrt(np.maximum(np.einsum('ij,ji->i', (k1 @ cov), k1.T.toarray()), 0.0))
     d0 = np.maximum(cfg.delta_position, 3.0 * sd0)
     d1 = np.maximum(cfg.delta_velocity, 3.0 * sd1)
+    if floor is not None:
+        d0 = np.maximum(d0, 3.0 * np.interp(times, all_times, floor[0]))
+        d1 = np.maximum(d1, 3.0 * np.interp(times, all_times, floor[1]))
     x = cp.Variable(ax.n_coef)
     base = c @ coef
     if float(np.max(np.abs(base), initial=0.0)) <= cfg.jump_epsilon:
@@ -613,8 +641,12 @@ def choose_knots(
         dense = tuple(a.interior.size for a in axes)
         if method == 'sparse' and cfg.sparse:
             red = []
+            floors = rough.axis_sigma(frame[1])
             for a in range(3):
-                ax, _, inf = select_knots(axes[a], coefs[a], covs[a], rough.time, cfg, events)
+                fl = None if floors is None else (floors[0][:, a], floors[1][:, a])
+                ax, _, inf = select_knots(
+                    axes[a], coefs[a], covs[a], rough.time, cfg, events, floor=fl
+                )
                 red.append(ax)
                 solve += float(inf['solve_time'])
                 info = {'solver': str(inf['solver']), 'status': str(inf['status'])}
