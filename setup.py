@@ -29,7 +29,7 @@ console_scripts = [
     'triangulation = orbit_tracking.ros.triangulation_node:main',
     'estimator = orbit_tracking.ros.estimator_node:main',
     'results = orbit_tracking.ros.results_node:main',
-    'orbit-tracking = orbit_tracking.cli:main',
+    'orbit-tracking = orbit_tracking.tools.cli:main',
 ]
 
 setup(

@@ -1,7 +1,7 @@
 """Launch the processing chain (for a full ROS 2 install): the scenario simulator, the
 triangulation node, the sliding-window estimator and the results node, each with its
 parameter file of ``config/``. The same nodes and files as ``orbit-tracking demo``
-(``orbit_tracking.ros.live.NODES``; test/test_launch.py keeps the two in step).
+(``orbit_tracking.tools.live.NODES``; test/test_launch.py keeps the two in step).
 
     ros2 launch orbit_tracking tracking.launch.py scenario:=seed003_q2 rate_factor:=5.0
 

@@ -18,16 +18,16 @@ from rclpy.serialization import deserialize_message
 from rosbags.rosbag2 import Reader
 from sensor_msgs.msg import PointCloud2
 
-from orbit_tracking.cli import main
-from orbit_tracking.core.measurements import StationPose, predict, residual
-from orbit_tracking.core.scenario import load_scenario
-from orbit_tracking.core.simulation import SimulationResult, World, simulate
+from orbit_tracking.core.models.measurements import StationPose, predict, residual
+from orbit_tracking.core.sim.scenario import load_scenario
+from orbit_tracking.core.sim.simulator import SimulationResult, World, simulate
 from orbit_tracking.ros.conversions import (
     TimeBase,
     cloud_to_measurements,
     odometry_to_station_state,
     odometry_to_target_state,
 )
+from orbit_tracking.tools.cli import main
 
 MSG_CLASSES = {'sensor_msgs/msg/PointCloud2': PointCloud2, 'nav_msgs/msg/Odometry': Odometry}
 

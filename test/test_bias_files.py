@@ -12,7 +12,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-from orbit_tracking.core.bias_files import (
+from orbit_tracking.core.data.observations import Observations
+from orbit_tracking.core.errors import ConfigError
+from orbit_tracking.core.estimation.bias_files import (
     BIASES_BY_WINDOW_CSV_COLUMNS,
     BIASES_CSV_COLUMNS,
     DEFAULT_PRIOR_SIGMA,
@@ -22,17 +24,14 @@ from orbit_tracking.core.bias_files import (
     parse_bias_declaration,
     read_biases_csv,
     station_fields,
-    truth_biases,
     write_biases_by_window_csv,
     write_biases_csv,
 )
-from orbit_tracking.core.errors import ConfigError
-from orbit_tracking.core.estimator import BiasEstimate
-from orbit_tracking.core.measurements import KIND_FIELDS
-from orbit_tracking.core.observations import Observations
-from orbit_tracking.core.scenario import load_scenario
-from orbit_tracking.core.simulation import simulate
-from orbit_tracking.core.systematic import BiasParameter
+from orbit_tracking.core.estimation.estimator import BiasEstimate
+from orbit_tracking.core.models.measurements import KIND_FIELDS
+from orbit_tracking.core.models.systematic import BiasParameter
+from orbit_tracking.core.sim.scenario import load_scenario, truth_biases
+from orbit_tracking.core.sim.simulator import simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 EPOCH_NS = 1_700_000_000 * 1_000_000_000

@@ -11,10 +11,10 @@ from pathlib import Path
 import pytest
 import yaml
 
-from orbit_tracking.cli import main as cli_main
-from orbit_tracking.core.bias_files import read_biases_csv, truth_biases
-from orbit_tracking.core.estimator import BiasEstimate
-from orbit_tracking.core.scenario import load_scenario
+from orbit_tracking.core.estimation.bias_files import read_biases_csv
+from orbit_tracking.core.estimation.estimator import BiasEstimate
+from orbit_tracking.core.sim.scenario import load_scenario, truth_biases
+from orbit_tracking.tools.cli import main as cli_main
 
 EPOCH = 1_700_000_000
 TIMEBASE_NS = EPOCH * 1_000_000_000

@@ -8,13 +8,13 @@ from functools import cache
 import numpy as np
 import pytest
 
+from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.errors import MeasurementError
-from orbit_tracking.core.estimator import Estimate, EstimatorConfig, _Problem, estimate
-from orbit_tracking.core.knots import KnotConfig, choose_knots, rough_trajectory
-from orbit_tracking.core.observations import Observations
-from orbit_tracking.core.scenario import load_scenario
-from orbit_tracking.core.simulation import SimulationResult, simulate
-from orbit_tracking.core.systematic import BiasParameter
+from orbit_tracking.core.estimation.estimator import Estimate, EstimatorConfig, _Problem, estimate
+from orbit_tracking.core.estimation.knots import KnotConfig, choose_knots, rough_trajectory
+from orbit_tracking.core.models.systematic import BiasParameter
+from orbit_tracking.core.sim.scenario import load_scenario
+from orbit_tracking.core.sim.simulator import SimulationResult, simulate
 
 
 @cache
@@ -189,7 +189,7 @@ def test_a_bias_bounded_away_from_the_truth_stops_on_its_bound_and_says_so():
 
 @cache
 def _satellite_run(name: str) -> tuple[SimulationResult, Observations]:
-    from orbit_tracking.bench_biases import _observations
+    from orbit_tracking.tools.bench.biases import _observations
 
     result = simulate(load_scenario(name))
     return result, _observations(result)
@@ -199,7 +199,7 @@ def test_seed003_q3_six_biases_within_3_sigma_with_an_honest_trajectory_covarian
     """One target seen by two satellites: the biases are only weakly separable from the
     trajectory (sigma 0.35-0.9 of the prior), so the estimate must say so: every bias
     within 3 sigma, and the position covariance covers the kilometre-level error."""
-    from orbit_tracking.bench_biases import declare_biases
+    from orbit_tracking.tools.bench.biases import declare_biases
 
     result, obs = _satellite_run('seed003_q3')
     sc = result.scenario
@@ -221,7 +221,7 @@ def test_seed003_q3_six_biases_within_3_sigma_with_an_honest_trajectory_covarian
 def test_several_targets_share_the_satellite_biases_and_pin_them_better_than_any_one():
     """seed003_q4_multi over 50-110 s: three satellites, three vehicles. Measured: joint
     sigma 5-10x below the best single-target one, every |z| < 2."""
-    from orbit_tracking.bench_biases import declare_biases
+    from orbit_tracking.tools.bench.biases import declare_biases
 
     result, obs = _satellite_run('seed003_q4_multi')
     sc = result.scenario
@@ -242,8 +242,8 @@ def test_several_targets_share_the_satellite_biases_and_pin_them_better_than_any
 
 def test_the_thrust_along_velocity_constraint_lets_one_target_separate_the_biases():
     """Measured on seed003_q3: position RMS 2.26 km -> 0.25 km, biases within 0.2 sigma."""
-    from orbit_tracking.bench_biases import THRUST_SIGMA, declare_biases
-    from orbit_tracking.core.estimator import _thrust_normal
+    from orbit_tracking.core.estimation.estimator import _thrust_normal
+    from orbit_tracking.tools.bench.biases import THRUST_SIGMA, declare_biases
 
     # the constraint's Jacobian against central differences
     rng = np.random.default_rng(1)

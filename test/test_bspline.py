@@ -10,7 +10,7 @@ import pytest
 from scipy.interpolate import BSpline
 from scipy.spatial.transform import Rotation
 
-from orbit_tracking.core.bspline import SplineAxis, SplineTrajectory, clamped_knots
+from orbit_tracking.core.estimation.bspline import SplineAxis, SplineTrajectory, clamped_knots
 
 DEGREE = 4
 

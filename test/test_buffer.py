@@ -8,11 +8,11 @@ import math
 import numpy as np
 import pytest
 
-from orbit_tracking.core.buffer import ObservationBuffer
+from orbit_tracking.core.data.buffer import ObservationBuffer
+from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.errors import MeasurementError
-from orbit_tracking.core.observations import Observations
-from orbit_tracking.core.scenario import load_scenario
-from orbit_tracking.core.simulation import simulate
+from orbit_tracking.core.sim.scenario import load_scenario
+from orbit_tracking.core.sim.simulator import simulate
 
 
 @pytest.fixture(scope='module')

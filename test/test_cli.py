@@ -6,10 +6,10 @@ import sys
 
 import pytest
 
-from orbit_tracking.cli import main
-from orbit_tracking.core.scenario import load_scenario
-from orbit_tracking.core.simulation import simulate
-from orbit_tracking.core.stream import batch_rows
+from orbit_tracking.core.sim.scenario import load_scenario
+from orbit_tracking.core.sim.simulator import simulate
+from orbit_tracking.core.sim.stream import batch_rows
+from orbit_tracking.tools.cli import main
 
 TRACEBACK = 'Traceback (most recent call last)'
 
@@ -48,7 +48,7 @@ def test_cli_process_exits_with_status_2_without_traceback(tmp_path, start_proce
     cmd = [
         sys.executable,
         '-m',
-        'orbit_tracking.cli',
+        'orbit_tracking.tools.cli',
         *(a.format(tmp=tmp_path) for a in args),
         '--quiet',
     ]

@@ -19,9 +19,9 @@ from rclpy.serialization import deserialize_message
 from rosbags.rosbag2 import Reader
 from sensor_msgs.msg import PointCloud2
 
-from orbit_tracking.core.scenario import load_scenario
-from orbit_tracking.core.simulation import simulate
-from orbit_tracking.core.stream import batch_rows
+from orbit_tracking.core.sim.scenario import load_scenario
+from orbit_tracking.core.sim.simulator import simulate
+from orbit_tracking.core.sim.stream import batch_rows
 from orbit_tracking.ros.conversions import (
     TimeBase,
     cloud_to_measurements,
@@ -221,7 +221,7 @@ def test_record_captures_every_measurement_point(
     out = tmp_path / 'recorded'
     recorder = start_process(
         [
-            *(sys.executable, '-m', 'orbit_tracking.cli', 'record'),
+            *(sys.executable, '-m', 'orbit_tracking.tools.cli', 'record'),
             *('--out', str(out), '--idle', '3', '--topics', f'{ns}/*'),
         ],
         label='record',

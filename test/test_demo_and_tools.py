@@ -10,15 +10,19 @@ import numpy as np
 import pytest
 import yaml
 
-from orbit_tracking.bench import bench_triangulation, markdown_table, write_docs
-from orbit_tracking.cli import main as cli_main
-from orbit_tracking.core.alignment import AlignConfig
-from orbit_tracking.core.fixes import TriangulationPipeline
+from orbit_tracking.core.estimation.windows import read_trajectory_csv
 from orbit_tracking.core.metrics import hermite_states
-from orbit_tracking.core.scenario import load_scenario
-from orbit_tracking.core.simulation import simulate
-from orbit_tracking.core.windows import read_trajectory_csv
-from orbit_tracking.ros.live import NODES
+from orbit_tracking.core.sim.scenario import load_scenario
+from orbit_tracking.core.sim.simulator import simulate
+from orbit_tracking.core.triangulation.alignment import AlignConfig
+from orbit_tracking.core.triangulation.pipeline import TriangulationPipeline
+from orbit_tracking.tools.bench.triangulation import (
+    bench_triangulation,
+    markdown_table,
+    write_docs,
+)
+from orbit_tracking.tools.cli import main as cli_main
+from orbit_tracking.tools.live import NODES
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -1,4 +1,4 @@
-"""Unit tests of orbit_tracking.core.dynamics: closed-form orbits and rocket equation,
+"""Unit tests of orbit_tracking.core.models.dynamics: closed-form orbits and rocket equation,
 conservation laws, finite-difference derivatives and the seed 000/003/004 truth models."""
 
 from __future__ import annotations
@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq
 
-from orbit_tracking.core import dynamics, frames
-from orbit_tracking.core.scenario import build_targets, load_scenario
+from orbit_tracking.core import frames
+from orbit_tracking.core.models import dynamics
+from orbit_tracking.core.sim.scenario import build_targets, load_scenario
 
 GM_SEED003 = 3.986005e14
 SAT09_R0 = np.array([2043922.166765, 8186504.631471, 4343461.714791])

@@ -15,19 +15,30 @@ from scipy.optimize import least_squares
 from scipy.stats import chi2
 
 from orbit_tracking.core import frames
-from orbit_tracking.core.bspline import SplineAxis, SplineTrajectory
-from orbit_tracking.core.estimator import (
+from orbit_tracking.core.data.observations import Observations, StationObservations
+from orbit_tracking.core.data.tables import MeasurementTable, TargetStates
+from orbit_tracking.core.estimation.bspline import SplineAxis, SplineTrajectory
+from orbit_tracking.core.estimation.estimator import (
     EstimationError,
     EstimatorConfig,
     _gauss_newton,
     _Problem,
     estimate,
 )
-from orbit_tracking.core.knots import KnotConfig, _fit_rough, rough_trajectory, spline_frame
-from orbit_tracking.core.measurements import StationPose, predict
-from orbit_tracking.core.observations import Observations, StationObservations
-from orbit_tracking.core.scenario import Scenario, find_scenario, load_scenario, scenario_from_dict
-from orbit_tracking.core.simulation import MeasurementTable, TargetStates, World, simulate
+from orbit_tracking.core.estimation.knots import (
+    KnotConfig,
+    _fit_rough,
+    rough_trajectory,
+    spline_frame,
+)
+from orbit_tracking.core.models.measurements import StationPose, predict
+from orbit_tracking.core.sim.scenario import (
+    Scenario,
+    find_scenario,
+    load_scenario,
+    scenario_from_dict,
+)
+from orbit_tracking.core.sim.simulator import World, simulate
 
 # seed 000's launch site and azimuth (config/scenarios/seed000_s1.yaml)
 LAT, LON, HEIGHT = np.radians(40.9), np.radians(100.3), 1000.0
@@ -400,7 +411,7 @@ def test_knots_reselected_on_a_first_solution_from_fixes_stay_within_its_uncerta
     chosen again on the first solution must follow its uncertainty, not its white-noise
     fit: before that, ~55 knots fitted its wiggles (5.1 m, 4.3 m/s mean error, worse than
     a Kalman smoother tuned on truth); now a handful (3.0 m, 0.4 m/s)."""
-    from orbit_tracking.bench_estimator import fixes_for
+    from orbit_tracking.tools.bench.estimator import fixes_for
 
     sc = load_scenario('seed003_q2')
     result = simulate(sc, World(sc))

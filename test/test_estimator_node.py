@@ -13,11 +13,11 @@ import pytest
 import yaml
 from test_windows import write_short_scenario
 
-from orbit_tracking.cli import main as cli_main
+from orbit_tracking.core.estimation.windows import TRAJECTORY_CSV_COLUMNS, read_trajectory_csv
 from orbit_tracking.core.metrics import hermite_states
-from orbit_tracking.core.scenario import load_scenario
-from orbit_tracking.core.simulation import simulate
-from orbit_tracking.core.windows import TRAJECTORY_CSV_COLUMNS, read_trajectory_csv
+from orbit_tracking.core.sim.scenario import load_scenario
+from orbit_tracking.core.sim.simulator import simulate
+from orbit_tracking.tools.cli import main as cli_main
 
 ROOT = Path(__file__).resolve().parents[1]
 EPOCH = 1_700_000_000
@@ -235,7 +235,7 @@ def test_estimator_node_solves_windows_from_a_live_pass_close_to_truth(
     from sensor_msgs.msg import PointCloud2
     from std_srvs.srv import Trigger
 
-    from orbit_tracking.core.simulation import TargetStates
+    from orbit_tracking.core.data.tables import TargetStates
     from orbit_tracking.ros import qos
     from orbit_tracking.ros.conversions import (
         TimeBase,

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from orbit_tracking.core import frames
-from orbit_tracking.core.estimator import EstimationError
-from orbit_tracking.core.kalman import KalmanConfig, _start, smooth, tune_on_truth
-from orbit_tracking.core.measurements import StationPose, predict, residual
-from orbit_tracking.core.observations import FixSeries, Observations, StationObservations
-from orbit_tracking.core.simulation import MeasurementTable
+from orbit_tracking.core.baselines.kalman import KalmanConfig, _start, smooth, tune_on_truth
+from orbit_tracking.core.data.observations import FixSeries, Observations, StationObservations
+from orbit_tracking.core.data.tables import MeasurementTable
+from orbit_tracking.core.estimation.estimator import EstimationError
+from orbit_tracking.core.models.measurements import StationPose, predict, residual
 
 LAT, LON = np.radians(40.9), np.radians(100.3)
 ORIGIN = frames.geodetic_to_ecef(LAT, LON, 1000.0)

@@ -10,12 +10,13 @@ from functools import cache
 import numpy as np
 import pytest
 
-from orbit_tracking.core.coverage import (
+from orbit_tracking.core.data.observations import Observations
+from orbit_tracking.core.estimation.coverage import (
     CoverageConfig,
     find_incomplete_segments,
     merge_segments,
 )
-from orbit_tracking.core.knots import (
+from orbit_tracking.core.estimation.knots import (
     KnotConfig,
     KnotSelectionError,
     RoughTrajectory,
@@ -26,9 +27,8 @@ from orbit_tracking.core.knots import (
     select_knots,
     uniform_knots,
 )
-from orbit_tracking.core.observations import Observations
-from orbit_tracking.core.scenario import load_scenario
-from orbit_tracking.core.simulation import World, simulate
+from orbit_tracking.core.sim.scenario import load_scenario
+from orbit_tracking.core.sim.simulator import World, simulate
 
 DT = 0.05  # s, the 20 Hz telemetry of seed 000
 
@@ -304,8 +304,8 @@ def test_coverage_config_rejects_bad_values():
 def test_select_knots_drops_every_knot_of_a_polynomial_without_a_degenerate_lp():
     """A rough trajectory that is one polynomial has 4th-derivative jumps at rounding
     level; scaling the LP by them once made both solvers fail (seen on seed003_q3)."""
-    from orbit_tracking.core.bspline import SplineAxis
-    from orbit_tracking.core.knots import KnotConfig, select_knots
+    from orbit_tracking.core.estimation.bspline import SplineAxis
+    from orbit_tracking.core.estimation.knots import KnotConfig, select_knots
 
     ax = SplineAxis.from_interior(np.arange(1.0, 10.0), 0.0, 10.0, 4)
     t = np.linspace(0.0, 10.0, 201)
@@ -335,7 +335,7 @@ def test_select_knots_accepts_any_spline_within_three_sigma_of_an_estimate():
     """A first solution wiggles about the truth within its own uncertainty (here 2 m
     with 1 m sigma); held to its white-noise fit tolerance the selection keeps knots for
     the wiggle, given the estimate's sigma it keeps none."""
-    from orbit_tracking.core.bspline import SplineAxis
+    from orbit_tracking.core.estimation.bspline import SplineAxis
 
     ax = SplineAxis.from_interior(np.arange(1.0, 20.0, 0.5), 0.0, 20.0, 4)
     t = np.linspace(0.0, 20.0, 401)

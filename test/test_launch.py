@@ -16,7 +16,7 @@ from unittest import mock
 
 import pytest
 
-from orbit_tracking.ros.live import NODES, SIMULATOR, PackageLocation, node_command
+from orbit_tracking.tools.live import NODES, SIMULATOR, PackageLocation, node_command
 
 ROOT = Path(__file__).resolve().parents[1]
 LAUNCH = ROOT / 'launch' / 'tracking.launch.py'

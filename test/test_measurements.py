@@ -1,4 +1,4 @@
-"""Unit tests of orbit_tracking.core.measurements: conventions on hand-made geometry and
+"""Unit tests of orbit_tracking.core.models.measurements: conventions on hand-made geometry and
 analytic Jacobians against central finite differences."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import pytest
 
 from orbit_tracking.core import frames
 from orbit_tracking.core.errors import MeasurementError
-from orbit_tracking.core.measurements import (
+from orbit_tracking.core.models.measurements import (
     FIELDS,
     StationPose,
     los_unit_vectors,

@@ -161,14 +161,14 @@ def replay(name: str, rate: float, start_process: Any, rclpy_node: Any) -> Repla
     from sensor_msgs.msg import PointCloud2
     from std_srvs.srv import Trigger
 
-    from orbit_tracking.core.windows import handover_span, output_times
+    from orbit_tracking.core.estimation.windows import handover_span, output_times
     from orbit_tracking.ros import qos
     from orbit_tracking.ros.conversions import (
         TimeBase,
         cloud_to_window_states,
         odometry_to_target_state,
     )
-    from orbit_tracking.ros.live import NODES, node_command, package_location
+    from orbit_tracking.tools.live import NODES, node_command, package_location
 
     bag = DATA / 'bags' / name
     n_played, newest, has_telemetry = _bag_inputs(bag)
@@ -182,7 +182,7 @@ def replay(name: str, rate: float, start_process: Any, rclpy_node: Any) -> Repla
         lambda: f'the nodes of the previous replay to leave: {rclpy_node.get_node_names()}',
         {},
     )
-    # started as the main job starts them (orbit_tracking.ros.live): the installed executable
+    # started as the main job starts them (orbit_tracking.tools.live): the installed executable
     # as ros2 run does when this runs from an install space, else python -m from the
     # source tree; each with its config/<node>.yaml and the overrides
     where = package_location()
@@ -240,7 +240,7 @@ def replay(name: str, rate: float, start_process: Any, rclpy_node: Any) -> Repla
         # the player waits (up to 90 s) until the triangulation and estimator nodes, which
         # subscribe to station topics as they appear, read every one of them
         procs['replay'] = start_process(
-            [sys.executable, '-m', 'orbit_tracking.cli', 'replay', str(bag)]
+            [sys.executable, '-m', 'orbit_tracking.tools.cli', 'replay', str(bag)]
             + ['--rate', str(rate), '--topics', *PLAYED]
             + ['--wait-for-subscribers', '2', '--wait-timeout', '90'],
             label='replay',

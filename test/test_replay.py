@@ -15,10 +15,10 @@ from contextlib import contextmanager
 import numpy as np
 import pytest
 
-from orbit_tracking.cli import main as cli_main
-from orbit_tracking.core.scenario import load_scenario
-from orbit_tracking.core.simulation import simulate
-from orbit_tracking.core.stream import EventStream
+from orbit_tracking.core.sim.scenario import load_scenario
+from orbit_tracking.core.sim.simulator import simulate
+from orbit_tracking.core.sim.stream import EventStream
+from orbit_tracking.tools.cli import main as cli_main
 
 EPOCH_NS = 1_700_000_000 * 1_000_000_000
 
@@ -182,7 +182,7 @@ def test_replay_in_a_loop_resets_the_triangulation_node_and_publishes_the_bag_cl
         'the triangulation node to appear',
     )
     player = start_process(
-        [sys.executable, '-m', 'orbit_tracking.cli', 'replay', str(bag), '--rate', '10']
+        [sys.executable, '-m', 'orbit_tracking.tools.cli', 'replay', str(bag), '--rate', '10']
         + ['--loop', '--clock', '--topics', 'stations/*', '--wait-for-subscribers', '1'],
         label='replay',
     )
@@ -229,7 +229,7 @@ def test_replay_of_a_missing_or_broken_bag_is_a_clean_error(tmp_path, capsys):
 
 @pytest.mark.dds
 def test_dds_benchmark_runs_end_to_end_with_tiny_settings():
-    from orbit_tracking.bench_dds import bench_dds, dds_table
+    from orbit_tracking.tools.bench.dds import bench_dds, dds_table
 
     rows = bench_dds(rates=[800.0], span=3.0, windows=(2.0, 0.5, 0.5), progress=False)
     (r,) = rows
@@ -241,7 +241,7 @@ def test_dds_benchmark_runs_end_to_end_with_tiny_settings():
 
 
 def test_bench_parser_offers_the_dds_suite_outside_all():
-    from orbit_tracking.cli import build_parser
+    from orbit_tracking.tools.cli import build_parser
 
     args = build_parser().parse_args(['bench', '--suite', 'dds', '--rates', '100', '200'])
     assert args.rates == [100.0, 200.0] and args.span == 30.0
@@ -255,8 +255,8 @@ def test_late_station_states_are_waited_for_not_dropped(tmp_path):
     """The station-state topic queued 8 s of data time behind the measurements (a busy
     node reads one message per topic per turn): every epoch still gets its states, and
     the node gives the fixes of a pass in stamp order."""
-    from orbit_tracking.core.alignment import AlignConfig
-    from orbit_tracking.core.fixes import TriangulationPipeline
+    from orbit_tracking.core.triangulation.alignment import AlignConfig
+    from orbit_tracking.core.triangulation.pipeline import TriangulationPipeline
     from orbit_tracking.ros.triangulation_node import TriangulationNode
 
     (tmp_path / 'q2.yaml').write_text(SHORT_Q2)

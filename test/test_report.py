@@ -13,16 +13,16 @@ import pytest
 import yaml
 from test_windows import write_short_scenario
 
-from orbit_tracking.cli import main as cli_main
-from orbit_tracking.core.bias_files import write_biases_by_window_csv, write_biases_csv
-from orbit_tracking.core.estimator import BiasEstimate
+from orbit_tracking.core.data.observations import Observations
+from orbit_tracking.core.estimation.bias_files import write_biases_by_window_csv, write_biases_csv
+from orbit_tracking.core.estimation.estimator import BiasEstimate
+from orbit_tracking.core.estimation.windows import write_trajectory_csv
 from orbit_tracking.core.metrics import hermite_states
-from orbit_tracking.core.observations import Observations
-from orbit_tracking.core.scenario import load_scenario
-from orbit_tracking.core.simulation import simulate
-from orbit_tracking.core.windows import write_trajectory_csv
-from orbit_tracking.report import HTML_FIGURES, _post_fit
-from orbit_tracking.ros.report_inputs import report_context
+from orbit_tracking.core.sim.scenario import load_scenario
+from orbit_tracking.core.sim.simulator import simulate
+from orbit_tracking.tools.cli import main as cli_main
+from orbit_tracking.tools.report import HTML_FIGURES, _post_fit
+from orbit_tracking.tools.report_inputs import report_context
 
 EPOCH_NS = 1_700_000_000 * 1_000_000_000
 SIGMA = np.array([0.5, 0.5, 0.5, 0.02, 0.02, 0.02])

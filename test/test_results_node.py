@@ -14,13 +14,11 @@ import yaml
 from test_windows import write_short_scenario
 
 from orbit_tracking.core import frames
-from orbit_tracking.core.estimator import EstimatorConfig
-from orbit_tracking.core.observations import Observations
-from orbit_tracking.core.residuals import ResidualStats, window_residual_stats
-from orbit_tracking.core.scenario import load_scenario
-from orbit_tracking.core.simulation import simulate
-from orbit_tracking.core.stitcher import SampledWindow, TrajectoryStitcher
-from orbit_tracking.core.windows import (
+from orbit_tracking.core.data.observations import Observations
+from orbit_tracking.core.estimation.estimator import EstimatorConfig
+from orbit_tracking.core.estimation.residuals import ResidualStats, window_residual_stats
+from orbit_tracking.core.estimation.stitcher import SampledWindow, TrajectoryStitcher
+from orbit_tracking.core.estimation.windows import (
     WindowConfig,
     blend,
     handover_span,
@@ -28,6 +26,8 @@ from orbit_tracking.core.windows import (
     solve_windows,
     stitch,
 )
+from orbit_tracking.core.sim.scenario import load_scenario
+from orbit_tracking.core.sim.simulator import simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 EPOCH = 1_700_000_000

@@ -13,14 +13,14 @@ import pytest
 import yaml
 
 from orbit_tracking.core.errors import ConfigError
-from orbit_tracking.core.measurements import KIND_FIELDS, KIND_OPTIONAL_FIELDS
-from orbit_tracking.core.scenario import (
+from orbit_tracking.core.models.measurements import KIND_FIELDS, KIND_OPTIONAL_FIELDS
+from orbit_tracking.core.sim.scenario import (
     find_scenario,
     list_scenarios,
     load_scenario,
     orbit_state_from_elements,
 )
-from orbit_tracking.core.simulation import World
+from orbit_tracking.core.sim.simulator import World
 
 REFERENCE = {
     'seed000_s1',

@@ -12,10 +12,11 @@ import pytest
 import yaml
 
 from orbit_tracking.core import frames
-from orbit_tracking.core.measurements import StationPose, predict, residual
-from orbit_tracking.core.scenario import Scenario, load_scenario
-from orbit_tracking.core.simulation import SimulationResult, StationStates, World, simulate
-from orbit_tracking.core.systematic import BiasModel
+from orbit_tracking.core.data.tables import StationStates
+from orbit_tracking.core.models.measurements import StationPose, predict, residual
+from orbit_tracking.core.models.systematic import BiasModel
+from orbit_tracking.core.sim.scenario import Scenario, load_scenario
+from orbit_tracking.core.sim.simulator import SimulationResult, World, simulate
 
 # Noise statistics pool runs of the scenario over consecutive seeds (its own first) until
 # every station and field has N_MIN points: the sample std of n standard normals spreads by

@@ -1,4 +1,4 @@
-"""Unit tests of orbit_tracking.core.stream: batching and time ordering of the events that
+"""Unit tests of orbit_tracking.core.sim.stream: batching and time ordering of the events that
 the live simulators and the bag writer publish."""
 
 from __future__ import annotations
@@ -8,9 +8,9 @@ from functools import cache
 import numpy as np
 import pytest
 
-from orbit_tracking.core.scenario import load_scenario
-from orbit_tracking.core.simulation import SimulationResult, simulate
-from orbit_tracking.core.stream import EventStream, batch_rows
+from orbit_tracking.core.sim.scenario import load_scenario
+from orbit_tracking.core.sim.simulator import SimulationResult, simulate
+from orbit_tracking.core.sim.stream import EventStream, batch_rows
 
 
 @cache

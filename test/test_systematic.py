@@ -1,4 +1,4 @@
-"""Unit tests of orbit_tracking.core.systematic.BiasModel: seed 003's relation, inverse
+"""Unit tests of orbit_tracking.core.models.systematic.BiasModel: seed 003's relation, inverse
 and Jacobians against finite differences."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from orbit_tracking.core.errors import MeasurementError
-from orbit_tracking.core.systematic import BIAS_PARAMETERS, BiasModel
+from orbit_tracking.core.models.systematic import BIAS_PARAMETERS, BiasModel
 
 # seed 003 (SCENARIOS.md): (d_alpha, d_beta, d_theta) of satellites 06 and 09
 SAT06 = {'los_alpha': 2.89e-4, 'los_beta': 3.23e-4, 'los_theta': -3.46e-4}

@@ -11,14 +11,13 @@ import pytest
 from scipy.optimize import least_squares
 
 from orbit_tracking.core import frames
-from orbit_tracking.core.alignment import AlignConfig, low_pass
 from orbit_tracking.core.errors import GeometryError
-from orbit_tracking.core.fixes import TriangulationPipeline
-from orbit_tracking.core.measurements import StationPose, predict
 from orbit_tracking.core.metrics import nees, nees_summary
-from orbit_tracking.core.scenario import load_scenario
-from orbit_tracking.core.simulation import World, simulate
-from orbit_tracking.core.triangulation import (
+from orbit_tracking.core.models.measurements import StationPose, predict
+from orbit_tracking.core.sim.scenario import load_scenario
+from orbit_tracking.core.sim.simulator import World, simulate
+from orbit_tracking.core.triangulation.alignment import AlignConfig, low_pass
+from orbit_tracking.core.triangulation.intersection import (
     Gates,
     LineOfSight,
     angle_jacobian_local,
@@ -26,6 +25,7 @@ from orbit_tracking.core.triangulation import (
     midpoint,
     triangulate,
 )
+from orbit_tracking.core.triangulation.pipeline import TriangulationPipeline
 
 SIGMA = 2.4e-5  # rad, 5 arc-seconds
 
@@ -399,7 +399,7 @@ def test_a_corrupt_far_future_stamp_is_rejected_and_does_not_stop_the_fixes():
 
 
 def test_a_new_pass_after_a_long_pause_restarts_the_buffers():
-    from orbit_tracking.core.alignment import Aligner
+    from orbit_tracking.core.triangulation.alignment import Aligner
 
     al = Aligner(AlignConfig(max_time_jump=100.0))
     rot = np.eye(3)

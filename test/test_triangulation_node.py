@@ -9,15 +9,15 @@ import time
 import numpy as np
 import pytest
 
-from orbit_tracking.cli import main as cli_main
-from orbit_tracking.core.fixes import (
+from orbit_tracking.core.sim.scenario import load_scenario
+from orbit_tracking.core.sim.simulator import simulate
+from orbit_tracking.core.sim.stream import feed_simulation
+from orbit_tracking.core.triangulation.pipeline import (
     FIXES_CSV_COLUMNS,
     TriangulationPipeline,
-    feed_simulation,
     read_fixes_csv,
 )
-from orbit_tracking.core.scenario import load_scenario
-from orbit_tracking.core.simulation import simulate
+from orbit_tracking.tools.cli import main as cli_main
 
 EPOCH = 1_700_000_000
 
@@ -119,7 +119,7 @@ def test_triangulation_node_counts_bad_input_and_keeps_running(
     from nav_msgs.msg import Odometry
     from sensor_msgs.msg import PointCloud2, PointField
 
-    from orbit_tracking.core.simulation import World
+    from orbit_tracking.core.sim.simulator import World
     from orbit_tracking.ros import qos
     from orbit_tracking.ros.conversions import TimeBase, station_state_to_odometry
 
@@ -271,7 +271,7 @@ def test_replaying_a_bag_into_the_node_reproduces_the_offline_fixes(
         [
             sys.executable,
             '-m',
-            'orbit_tracking.cli',
+            'orbit_tracking.tools.cli',
             'play',
             str(bag),
             '--rate',

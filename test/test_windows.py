@@ -11,14 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from orbit_tracking.core.bspline import SplineAxis, SplineTrajectory
-from orbit_tracking.core.estimator import Estimate, EstimatorConfig, TargetSolution
-from orbit_tracking.core.knots import KnotSelection
-from orbit_tracking.core.metrics import hermite_states
-from orbit_tracking.core.observations import Observations
-from orbit_tracking.core.scenario import load_scenario
-from orbit_tracking.core.simulation import simulate
-from orbit_tracking.core.windows import (
+from orbit_tracking.core.data.observations import Observations
+from orbit_tracking.core.estimation.bspline import SplineAxis, SplineTrajectory
+from orbit_tracking.core.estimation.estimator import Estimate, EstimatorConfig, TargetSolution
+from orbit_tracking.core.estimation.knots import KnotSelection
+from orbit_tracking.core.estimation.windows import (
     TRAJECTORY_CSV_COLUMNS,
     WindowConfig,
     WindowScheduler,
@@ -30,6 +27,9 @@ from orbit_tracking.core.windows import (
     stitch,
     write_trajectory_csv,
 )
+from orbit_tracking.core.metrics import hermite_states
+from orbit_tracking.core.sim.scenario import load_scenario
+from orbit_tracking.core.sim.simulator import simulate
 
 EPOCH_NS = 1_700_000_000 * 1_000_000_000
 

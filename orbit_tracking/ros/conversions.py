@@ -36,13 +36,13 @@ from sensor_msgs.msg import PointCloud2, PointField
 
 from orbit_tracking.core import frames
 from orbit_tracking.core.errors import MeasurementError
-from orbit_tracking.core.fixes import format_stamp, parse_stamp
-from orbit_tracking.core.measurements import FIELDS, sigma_field
-from orbit_tracking.core.residuals import ResidualStats
-from orbit_tracking.core.systematic import ESTIMABLE_BIASES
+from orbit_tracking.core.estimation.residuals import ResidualStats
+from orbit_tracking.core.models.measurements import FIELDS, sigma_field
+from orbit_tracking.core.models.systematic import ESTIMABLE_BIASES
+from orbit_tracking.core.time import format_stamp, parse_stamp
 
 if TYPE_CHECKING:  # the estimator is heavy to import, and only the bias messages need it
-    from orbit_tracking.core.estimator import BiasEstimate
+    from orbit_tracking.core.estimation.estimator import BiasEstimate
 
 __all__ = [
     'MeasurementBatch',
@@ -873,7 +873,7 @@ def diagnostics_to_biases(msg: DiagnosticArray) -> tuple[BiasEstimate, ...]:
         A ``<name>_bias`` without its ``<name>_bias_sigma``, or a value that is not a
         number.
     """
-    from orbit_tracking.core.estimator import BiasEstimate
+    from orbit_tracking.core.estimation.estimator import BiasEstimate
 
     out = []
     for st in msg.status:

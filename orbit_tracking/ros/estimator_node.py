@@ -37,21 +37,26 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
-from orbit_tracking.core.bias_files import load_bias_declaration, station_fields
-from orbit_tracking.core.buffer import ObservationBuffer
+from orbit_tracking.core.data.buffer import ObservationBuffer
+from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.errors import OrbitTrackingError
-from orbit_tracking.core.estimator import (
+from orbit_tracking.core.estimation.bias_files import load_bias_declaration, station_fields
+from orbit_tracking.core.estimation.estimator import (
     KNOT_METHODS,
     Estimate,
     EstimatorConfig,
     TargetSolution,
     estimate,
 )
-from orbit_tracking.core.fixes import format_stamp
-from orbit_tracking.core.knots import KnotConfig
-from orbit_tracking.core.observations import Observations
-from orbit_tracking.core.residuals import window_residual_stats
-from orbit_tracking.core.windows import Span, WindowConfig, WindowScheduler, output_times
+from orbit_tracking.core.estimation.knots import KnotConfig
+from orbit_tracking.core.estimation.residuals import window_residual_stats
+from orbit_tracking.core.estimation.windows import (
+    Span,
+    WindowConfig,
+    WindowScheduler,
+    output_times,
+)
+from orbit_tracking.core.time import format_stamp
 from orbit_tracking.ros import qos
 from orbit_tracking.ros.conversions import (
     MeasurementBatch,

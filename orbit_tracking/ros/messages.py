@@ -6,8 +6,8 @@ import numpy as np
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import PointCloud2
 
-from orbit_tracking.core.simulation import SimulationResult
-from orbit_tracking.core.stream import Event
+from orbit_tracking.core.sim.simulator import SimulationResult
+from orbit_tracking.core.sim.stream import Event
 from orbit_tracking.ros.conversions import (
     TimeBase,
     measurements_to_cloud,

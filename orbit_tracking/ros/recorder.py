@@ -45,7 +45,7 @@ class RecorderNode(Node):
     storage : {'mcap', 'sqlite3'}
     custom_data : mapping of str to str, optional
         Written into the bag's metadata (rosbag2 ``custom_data``), e.g. the scenario labels
-        of :func:`~orbit_tracking.ros.bagsim.scenario_custom_data`.
+        of :func:`~orbit_tracking.tools.simulate.scenario_custom_data`.
     """
 
     def __init__(

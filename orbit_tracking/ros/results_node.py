@@ -3,7 +3,8 @@
 Subscribes to ``estimator/window_states`` (each solved window's states, ``PointCloud2``)
 and ``estimator/window_residuals`` (its residual statistics per station), hands over from
 one window to the next with the offline tool's blend, and publishes each state once it is
-final (no later window can change it; the rule is in :mod:`orbit_tracking.core.stitcher`):
+final (no later window can change it; the rule is in
+:mod:`orbit_tracking.core.estimation.stitcher`):
 
 * ``trajectory/states`` (``nav_msgs/Odometry``, every target or the ``target_id`` one) and
   ``trajectory/target_<id>/states``;
@@ -38,10 +39,10 @@ from sensor_msgs.msg import PointCloud2
 from std_srvs.srv import Trigger
 
 from orbit_tracking.core import frames
-from orbit_tracking.core.fixes import format_stamp
-from orbit_tracking.core.residuals import ResidualStats
-from orbit_tracking.core.scenario import load_scenario
-from orbit_tracking.core.stitcher import FinalStates, TrajectoryStitcher, split_window
+from orbit_tracking.core.estimation.residuals import ResidualStats
+from orbit_tracking.core.estimation.stitcher import FinalStates, TrajectoryStitcher, split_window
+from orbit_tracking.core.sim.scenario import load_scenario
+from orbit_tracking.core.time import format_stamp
 from orbit_tracking.ros import qos
 from orbit_tracking.ros.conversions import (
     TimeBase,

@@ -19,15 +19,15 @@ from rclpy.task import Future
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import PointCloud2
 
-from orbit_tracking.core.scenario import Scenario, load_scenario
-from orbit_tracking.core.simulation import (
+from orbit_tracking.core.sim.scenario import Scenario, load_scenario
+from orbit_tracking.core.sim.simulator import (
     SimulationResult,
     World,
     simulate_station,
     simulate_telemetry,
     simulate_truth,
 )
-from orbit_tracking.core.stream import Event, EventStream
+from orbit_tracking.core.sim.stream import Event, EventStream
 from orbit_tracking.ros import qos
 from orbit_tracking.ros.conversions import TimeBase, diagnostic_array, diagnostic_status
 from orbit_tracking.ros.messages import event_message

@@ -39,7 +39,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 
 from orbit_tracking.core.errors import MeasurementError
-from orbit_tracking.core.fixes import format_stamp
+from orbit_tracking.core.time import format_stamp
 from orbit_tracking.ros import qos
 from orbit_tracking.ros.conversions import (
     MeasurementBatch,

@@ -21,9 +21,9 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.publisher import Publisher
 
-from orbit_tracking.core.alignment import AlignConfig
-from orbit_tracking.core.fixes import TimedFix, TriangulationPipeline
-from orbit_tracking.core.triangulation import REASONS, Gates
+from orbit_tracking.core.triangulation.alignment import AlignConfig
+from orbit_tracking.core.triangulation.intersection import REASONS, Gates
+from orbit_tracking.core.triangulation.pipeline import TimedFix, TriangulationPipeline
 from orbit_tracking.ros import qos
 from orbit_tracking.ros.conversions import (
     MeasurementBatch,

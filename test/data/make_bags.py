@@ -83,7 +83,7 @@ def _env() -> dict[str, str]:
 def _commands(spec: BagSpec, out: Path) -> tuple[list[str], list[str]]:
     """The recorder's and the simulator's command lines."""
     scenario = str(spec.scenario.relative_to(ROOT))
-    record = [sys.executable, '-m', 'orbit_tracking.cli', 'record', '--out', str(out)]
+    record = [sys.executable, '-m', 'orbit_tracking.tools.cli', 'record', '--out', str(out)]
     # --scenario labels the bag (custom_data) as simulate labels its bags
     record += ['--scenario', scenario, '--storage', 'mcap', '--idle', '3']
     record += ['--topics', *RECORDED_TOPICS]
@@ -205,8 +205,8 @@ def verify(spec: BagSpec, bag: Path, scratch: Path) -> None:
     RuntimeError
         Naming the topics whose messages differ.
     """
-    from orbit_tracking.core.scenario import load_scenario
-    from orbit_tracking.ros.bagsim import simulate_to_bag
+    from orbit_tracking.core.sim.scenario import load_scenario
+    from orbit_tracking.tools.simulate import simulate_to_bag
 
     ref = scratch / 'reference'
     simulate_to_bag(load_scenario(spec.scenario), ref, 'mcap', spec.batch_period, True, False)
@@ -245,7 +245,7 @@ def _git(*args: str) -> str:
 
 def describe(spec: BagSpec, bag: Path) -> dict[str, object]:
     """Manifest entry of a recorded bag."""
-    from orbit_tracking.core.scenario import load_scenario
+    from orbit_tracking.core.sim.scenario import load_scenario
     from orbit_tracking.ros.bag import read_bag
 
     sc = load_scenario(spec.scenario)

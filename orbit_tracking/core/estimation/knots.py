@@ -1,0 +1,683 @@
+"""Knot placement for the trajectory spline (seed 000, section 3).
+
+1. **Rough trajectory** (:func:`rough_trajectory`): on-board telemetry when present,
+   otherwise the triangulated fixes. It carries the true dynamic features.
+2. **Events** (:func:`detect_events`): instants where the acceleration jumps (engine
+   cut-off, ignition). A degree-``p`` spline with single knots is ``C^(p-1)`` and cannot
+   follow them, so the knot there is repeated ``p - 1`` times (``C^1``: position and
+   velocity continuous, acceleration free to jump).
+3. **Densification** (:func:`densify`): dense equally spaced knots (finer inside the
+   incomplete segments), a weighted least-squares fit of the rough position and velocity
+   ``min rho |r - K c|^2 + (1 - rho) |v - K' c|^2`` (each term whitened by the rough
+   trajectory's noise), and midpoints inserted around intervals whose fit error exceeds
+   ``sigma1`` / ``sigma2`` beyond the rough trajectory's own noise; repeated.
+4. **Sparse selection** (:func:`select_knots`): the convex problem
+   ``min |C c|_1  s.t.  |r - K c|_inf <= delta1, |v - K' c|_inf <= delta2`` (seed eq. 14)
+   solved with cvxpy, and knots whose ``p``-th-derivative jump is below ``epsilon``
+   dropped. ``r`` and ``v`` here are the densified fit, not the raw rough samples, so
+   the noise of the rough trajectory is not what the knots follow; the tolerances are
+   widened to ``3 sigma`` of that fit where it is less certain than ``delta``.
+"""
+
+from __future__ import annotations
+
+import time as _time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import NDArray
+
+from orbit_tracking.core.data.observations import Observations
+from orbit_tracking.core.errors import OrbitTrackingError
+from orbit_tracking.core.estimation.bspline import SplineAxis, SplineTrajectory
+
+__all__ = [
+    'KnotConfig',
+    'KnotSelection',
+    'KnotSelectionError',
+    'RoughTrajectory',
+    'choose_knots',
+    'densify',
+    'detect_events',
+    'dynamics_knots',
+    'rough_trajectory',
+    'select_knots',
+    'spline_frame',
+    'uniform_knots',
+]
+
+FloatArray = NDArray[np.float64]
+
+SOLVERS = ('HIGHS', 'CLARABEL', 'ECOS', 'SCS')
+
+
+class KnotSelectionError(OrbitTrackingError, RuntimeError):
+    """The sparse knot-selection problem has no optimal solution."""
+
+
+@dataclass(frozen=True)
+class KnotConfig:
+    """Knot placement settings (seed 000 defaults).
+
+    Attributes
+    ----------
+    degree : int
+        Spline degree (order - 1); the seed uses 4.
+    base_spacing, gap_spacing : float
+        Initial knot spacing [s] outside / inside incomplete segments.
+    min_spacing : float
+        Densification never goes below this spacing [s].
+    rho : float
+        Weight of the position term (velocity gets ``1 - rho``).
+    sigma_position, sigma_velocity : float
+        Densification thresholds sigma1 [m], sigma2 [m/s].
+    max_rounds : int
+        Densification rounds.
+    delta_position, delta_velocity : float
+        Sparse-selection tolerances delta1 [m], delta2 [m/s].
+    jump_epsilon : float
+        A knot whose ``p``-th-derivative jump is at most this [m/s^p] is dropped.
+    solver : str
+        cvxpy solver, one of ``HIGHS`` (default: simplex, exact zeros), ``CLARABEL``,
+        ``ECOS``, ``SCS``.
+    sparse : bool
+        False keeps the densified knots (no selection).
+    events : bool
+        Detect acceleration jumps and repeat the knot there.
+    event_min_jump : float
+        Smallest acceleration jump treated as an event [m/s^2].
+    event_sigma : float
+        ... and its significance against the rough trajectory's noise.
+    event_window : float
+        Half-length of the local fits on each side of a candidate [s].
+    """
+
+    degree: int = 4
+    base_spacing: float = 1.0
+    gap_spacing: float = 0.2
+    min_spacing: float = 0.025
+    rho: float = 0.5
+    sigma_position: float = 0.1
+    sigma_velocity: float = 0.05
+    max_rounds: int = 4
+    delta_position: float = 0.1
+    delta_velocity: float = 0.05
+    jump_epsilon: float = 1e-5
+    solver: str = 'HIGHS'
+    sparse: bool = True
+    events: bool = True
+    event_min_jump: float = 2.0
+    event_sigma: float = 10.0
+    event_window: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.degree < 2:
+            raise ValueError(f'spline degree must be >= 2; got {self.degree}')
+        if not (0.0 <= self.rho <= 1.0):
+            raise ValueError(f'rho must lie in [0, 1]; got {self.rho}')
+        positive = (
+            'base_spacing',
+            'gap_spacing',
+            'min_spacing',
+            'event_window',
+            'sigma_position',
+            'sigma_velocity',
+            'delta_position',
+            'delta_velocity',
+        )
+        for name in positive:
+            if not getattr(self, name) > 0.0:
+                raise ValueError(f'{name} must be > 0; got {getattr(self, name)}')
+        if self.jump_epsilon < 0.0 or self.max_rounds < 0:
+            raise ValueError('jump_epsilon and max_rounds must be >= 0')
+        if self.solver.upper() not in SOLVERS:
+            raise ValueError(f'solver must be one of {SOLVERS}; got {self.solver!r}')
+
+
+@dataclass(frozen=True)
+class RoughTrajectory:
+    """Samples of the rough trajectory of one target (world frame).
+
+    ``velocity`` is None when the source gives positions only (fixes).
+    ``position_noise`` / ``velocity_noise`` are the white-noise levels estimated from
+    the samples themselves (the reported sigmas of telemetry include slow drifts).
+    ``covariance`` (n, 6, 6), world frame, is given when the samples are themselves an
+    estimate (a first solution): their errors are smooth and correlated in time, not
+    white, and the knot selection then accepts any spline within 3 sigma of them.
+    """
+
+    source: str
+    time: FloatArray
+    position: FloatArray
+    velocity: FloatArray | None
+    position_noise: float
+    velocity_noise: float
+    covariance: FloatArray | None = None
+
+    def axis_sigma(self, rotation: FloatArray) -> tuple[FloatArray, FloatArray] | None:
+        """Standard deviations (n, 3) of position and velocity along the axes of a frame
+        whose axes are the columns of ``rotation``, from :attr:`covariance`."""
+        if self.covariance is None:
+            return None
+        c = self.covariance
+        pp = np.einsum('ia,nij,jb->nab', rotation, c[:, :3, :3], rotation)
+        vv = np.einsum('ia,nij,jb->nab', rotation, c[:, 3:, 3:], rotation)
+        return _diag_sd(pp), _diag_sd(vv)
+
+    def __len__(self) -> int:
+        return int(self.time.shape[0])
+
+    def state(self, t: FloatArray) -> FloatArray:
+        """Linear interpolation of (position, velocity) at ``t``, shape (m, 6)."""
+        p = np.stack([np.interp(t, self.time, self.position[:, c]) for c in range(3)], 1)
+        if self.velocity is not None:
+            v = np.stack([np.interp(t, self.time, self.velocity[:, c]) for c in range(3)], 1)
+        else:
+            g = np.gradient(self.position, self.time, axis=0) if len(self) > 1 else 0 * p
+            v = np.stack([np.interp(t, self.time, g[:, c]) for c in range(3)], 1)
+        return np.hstack([p, v])
+
+
+def _diag_sd(m: FloatArray) -> FloatArray:
+    """Square roots of the diagonals of a stack of covariances (n, k, k) -> (n, k)."""
+    return np.sqrt(np.maximum(np.diagonal(m, axis1=1, axis2=2), 0.0))
+
+
+def _noise_level(y: FloatArray) -> float:
+    """White-noise sigma from the MAD of second differences (robust to smooth trends)."""
+    if y.shape[0] < 5:
+        return float('nan')
+    d2 = np.diff(y, 2, axis=0)
+    mad = np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0) / 0.6745
+    return float(np.median(mad) / np.sqrt(6.0))
+
+
+def rough_trajectory(
+    obs: Observations, target_id: int, t0: float, t1: float, min_samples: int = 10
+) -> RoughTrajectory | None:
+    """The rough trajectory of ``target_id`` over [t0, t1]: telemetry if it has enough
+    samples there, else the fixes; None when neither exists."""
+    tel = obs.telemetry.get(target_id)
+    if tel is not None:
+        m = (tel.time >= t0) & (tel.time <= t1)
+        if int(m.sum()) >= min_samples:
+            t, p, v = tel.time[m], tel.position[m], tel.velocity[m]
+            return RoughTrajectory(
+                'telemetry', t, p, v, max(_noise_level(p), 1e-6), max(_noise_level(v), 1e-9)
+            )
+    fx = obs.fixes.get(target_id)
+    if fx is not None:
+        m = (fx.time >= t0) & (fx.time <= t1)
+        if int(m.sum()) >= min_samples:
+            t, p = fx.time[m], fx.position[m]
+            return RoughTrajectory('fixes', t, p, None, max(_noise_level(p), 1e-6), 0.0)
+    return None
+
+
+def spline_frame(rough: RoughTrajectory) -> tuple[FloatArray, FloatArray]:
+    """A launch-like frame at the rough trajectory's first point: ``y`` up (geocentric
+    radial), ``x`` along the horizontal part of the mean velocity, ``z = x × y``."""
+    origin = rough.position[0]
+    up = origin / max(np.linalg.norm(origin), 1.0)
+    if np.linalg.norm(origin) < 1.0:
+        up = np.array([0.0, 0.0, 1.0])
+    v = rough.state(rough.time[[0, -1]])[:, 3:].mean(axis=0)
+    if len(rough) > 1:
+        v = rough.position[-1] - rough.position[0]
+    h = v - up * float(v @ up)
+    if np.linalg.norm(h) < 1e-6 * max(float(np.linalg.norm(v)), 1.0):
+        h = np.cross(np.array([0.0, 0.0, 1.0]), up)
+        if np.linalg.norm(h) < 1e-9:
+            h = np.array([1.0, 0.0, 0.0])
+    x = h / np.linalg.norm(h)
+    z = np.cross(x, up)
+    return origin, np.column_stack([x, up, z])
+
+
+def detect_events(rough: RoughTrajectory, cfg: KnotConfig) -> list[float]:
+    """Times where the rough trajectory's acceleration jumps.
+
+    A quadratic is fitted to the velocity over ``event_window`` on each side of every
+    sample; a jump of their slopes at the sample (the acceleration) by more than
+    ``event_min_jump`` and ``event_sigma`` times its noise marks a candidate. The time
+    of each event is then refined by fitting a continuous broken line to the velocity
+    and searching the break on a grid of a twentieth of the sampling interval.
+    Needs velocity samples (telemetry); fixes give none.
+    """
+    if rough.velocity is None or len(rough) < 10:
+        return []
+    t, v = rough.time, rough.velocity
+    dt = float(np.median(np.diff(t)))
+    k = max(3, int(round(cfg.event_window / dt)))
+    n = t.size
+    if n < 2 * k + 1:
+        return []
+    # quadratic fits on each side, differentiated at the candidate: a steady jerk gives
+    # the same acceleration from both sides, only a jump differs
+    tau = (np.arange(k + 1) - k) * dt
+    a_mat = np.column_stack([np.ones(k + 1), tau, tau**2])
+    pinv = np.linalg.pinv(a_mat)  # (3, k + 1); row 1 = slope at tau = 0
+    w_left = pinv[1]
+    w_right = -w_left[::-1]  # mirror: right window runs forward in time
+    a_l = np.full((n, 3), np.nan)
+    a_r = np.full((n, 3), np.nan)
+    for c in range(3):
+        a_l[k:, c] = np.convolve(v[:, c], w_left[::-1], mode='valid')
+        a_r[: n - k, c] = np.convolve(v[:, c], w_right[::-1], mode='valid')
+    jump = np.linalg.norm(a_r - a_l, axis=1)
+    jump[:k] = np.nan
+    jump[n - k :] = np.nan
+    sig_slope = rough.velocity_noise * float(np.sqrt(w_left @ w_left))
+    threshold = max(cfg.event_min_jump, cfg.event_sigma * np.sqrt(2.0) * sig_slope * np.sqrt(3))
+    cand = np.flatnonzero(np.nan_to_num(jump) > threshold)
+    events: list[float] = []
+    while cand.size:
+        i = cand[np.argmax(jump[cand])]
+        events.append(_refine_event(t, v, t[i], cfg.event_window, dt))
+        cand = cand[np.abs(t[cand] - t[i]) > cfg.event_window]
+    return sorted(events)
+
+
+def _refine_event(t: FloatArray, v: FloatArray, tc: float, w: float, dt: float) -> float:
+    m = (t >= tc - w) & (t <= tc + w)
+    ts, vs = t[m], v[m]
+    best, best_tau = np.inf, tc
+    for tau in np.linspace(tc - dt, tc + dt, 41):
+        # continuous broken line: v = v0 + a1 min(t - tau, 0) + a2 max(t - tau, 0)
+        a = np.column_stack([np.ones_like(ts), np.minimum(ts - tau, 0.0), np.maximum(ts - tau, 0)])
+        coef, *_ = np.linalg.lstsq(a, vs, rcond=None)
+        sse = float(np.sum((vs - a @ coef) ** 2))
+        if sse < best:
+            best, best_tau = sse, float(tau)
+    return best_tau
+
+
+def _grid(t0: float, t1: float, spacing: float) -> FloatArray:
+    n = max(1, int(np.ceil((t1 - t0) / spacing - 1e-9)))
+    return np.linspace(t0, t1, n + 1)
+
+
+def uniform_knots(
+    t0: float,
+    t1: float,
+    spacing: float,
+    segments: Sequence[tuple[float, float]] = (),
+    segment_spacing: float | None = None,
+    events: Sequence[float] = (),
+    degree: int = 4,
+) -> FloatArray:
+    """Interior knots: every ``spacing`` s, every ``segment_spacing`` s inside the
+    segments, and each event repeated ``degree - 1`` times (ordinary knots closer than a
+    third of the local spacing to an event are dropped)."""
+    pts = [_grid(t0, t1, spacing)]
+    for a, b in segments:
+        a, b = max(a, t0), min(b, t1)
+        if b > a and segment_spacing:
+            inside = pts[0][(pts[0] > a) & (pts[0] < b)]
+            pts[0] = pts[0][(pts[0] <= a) | (pts[0] >= b)]
+            del inside
+            pts.append(_grid(a, b, segment_spacing))
+    knots = np.unique(np.concatenate(pts))
+    knots = knots[(knots > t0 + 1e-9) & (knots < t1 - 1e-9)]
+    ev = np.asarray([e for e in events if t0 < e < t1])
+    if ev.size:
+        local = np.minimum(spacing, segment_spacing or spacing)
+        near = np.min(np.abs(knots[:, None] - ev[None, :]), axis=1) < local / 3.0
+        knots = knots[~near]
+        knots = np.sort(np.concatenate([knots, np.repeat(ev, degree - 1)]))
+    return knots
+
+
+def dynamics_knots(
+    rough: RoughTrajectory,
+    t0: float,
+    t1: float,
+    spacing: float,
+    events: Sequence[float],
+    degree: int = 4,
+) -> FloatArray:
+    """Baseline (b), seed 000's method 1 in spirit: knots set from the dynamics of the
+    rough trajectory, without sparse selection: a repeated knot at each detected event
+    (staging) and otherwise uniform knots at ``spacing``."""
+    del rough
+    return uniform_knots(t0, t1, spacing, events=events, degree=degree)
+
+
+def _whitened_fit(
+    ax: SplineAxis,
+    rough: RoughTrajectory,
+    pos: FloatArray,
+    vel: FloatArray | None,
+    rho: float,
+) -> tuple[FloatArray, FloatArray]:
+    """Least-squares fit of one axis; returns (coef, covariance)."""
+    wp = rho / rough.position_noise**2 if vel is not None else 1.0 / rough.position_noise**2
+    a = ax.design(rough.time)
+    blocks = [np.sqrt(wp) * a]
+    rhs = [np.sqrt(wp) * pos]
+    if vel is not None:
+        wv = (1.0 - rho) / rough.velocity_noise**2
+        blocks.append(np.sqrt(wv) * ax.design(rough.time, 1))
+        rhs.append(np.sqrt(wv) * vel)
+    m = sp.vstack(blocks).tocsr()
+    b = np.concatenate(rhs)
+    n = (m.T @ m).toarray()
+    n += 1e-12 * np.max(np.diag(n)) * np.eye(ax.n_coef)
+    cov = np.linalg.inv(n)
+    return cov @ (m.T @ b), cov
+
+
+def densify(
+    rough: RoughTrajectory,
+    frame: tuple[FloatArray, FloatArray],
+    t0: float,
+    t1: float,
+    segments: Sequence[tuple[float, float]],
+    events: Sequence[float],
+    cfg: KnotConfig,
+) -> tuple[list[SplineAxis], list[FloatArray], list[FloatArray], int]:
+    """Seed 000's densification, per spline-frame axis.
+
+    Returns the axes, their fitted coefficients and coefficient covariances, and the
+    number of rounds run.
+    """
+    origin, rot = frame
+    local_p = (rough.position - origin) @ rot
+    local_v = None if rough.velocity is None else rough.velocity @ rot
+    base = uniform_knots(t0, t1, cfg.base_spacing, segments, cfg.gap_spacing, events, cfg.degree)
+    event_set = set(np.round(np.asarray(events, dtype=float), 12))
+    axes, coefs, covs = [], [], []
+    rounds_used = 0
+    for a in range(3):
+        knots = base.copy()
+        for rnd in range(cfg.max_rounds + 1):
+            ax = SplineAxis.from_interior(knots, t0, t1, cfg.degree)
+            vel = None if local_v is None else local_v[:, a]
+            coef, cov = _whitened_fit(ax, rough, local_p[:, a], vel, cfg.rho)
+            if rnd == cfg.max_rounds:
+                break
+            bad = _bad_intervals(ax, coef, rough, local_p[:, a], vel, cfg)
+            new = _midpoints(ax, bad, cfg.min_spacing, event_set)
+            if new.size == 0:
+                break
+            knots = np.sort(np.concatenate([knots, new]))
+            rounds_used = max(rounds_used, rnd + 1)
+        axes.append(ax)
+        coefs.append(coef)
+        covs.append(cov)
+    return axes, coefs, covs, rounds_used
+
+
+def _bad_intervals(
+    ax: SplineAxis,
+    coef: FloatArray,
+    rough: RoughTrajectory,
+    pos: FloatArray,
+    vel: FloatArray | None,
+    cfg: KnotConfig,
+) -> NDArray[np.bool_]:
+    """Knot intervals whose fit error exceeds the thresholds beyond the noise: the mean
+    squared error of the ``n`` samples in the interval exceeds
+    ``sigma^2 + noise^2 q / n``, ``q`` the chi-square(n) quantile at ``1 - 0.01 / N``
+    (``N`` intervals tested), so noise alone rarely triggers an insertion."""
+    from scipy.stats import chi2
+
+    brk = np.unique(ax.knots)
+    idx = np.clip(np.searchsorted(brk, rough.time, side='right') - 1, 0, brk.size - 2)
+    n_int = brk.size - 1
+    cnt = np.bincount(idx, minlength=n_int).astype(float)
+    bad = np.zeros(n_int, dtype=bool)
+    checks = [(pos - ax.evaluate(coef, rough.time), rough.position_noise, cfg.sigma_position)]
+    if vel is not None:
+        checks.append(
+            (vel - ax.evaluate(coef, rough.time, 1), rough.velocity_noise, cfg.sigma_velocity)
+        )
+    for e, noise, sigma in checks:
+        mse = np.bincount(idx, weights=e**2, minlength=n_int) / np.maximum(cnt, 1.0)
+        n = np.maximum(cnt, 1.0)
+        limit = sigma**2 + noise**2 * chi2.ppf(1.0 - 0.01 / n_int, n) / n
+        bad |= (cnt > 0) & (mse > limit)
+    return bad
+
+
+def _midpoints(
+    ax: SplineAxis, bad: NDArray[np.bool_], min_spacing: float, events: set[float]
+) -> FloatArray:
+    """Midpoints of each bad interval and of its neighbours (clustered insertion)."""
+    brk = np.unique(ax.knots)
+    pick = bad.copy()
+    pick[1:] |= bad[:-1]
+    pick[:-1] |= bad[1:]
+    lo, hi = brk[:-1][pick], brk[1:][pick]
+    ok = (hi - lo) >= 2.0 * min_spacing
+    del events
+    return 0.5 * (lo[ok] + hi[ok])
+
+
+def select_knots(
+    ax: SplineAxis,
+    coef: FloatArray,
+    cov: FloatArray,
+    times: FloatArray,
+    cfg: KnotConfig,
+    fixed: Sequence[float] = (),
+    floor: tuple[FloatArray, FloatArray] | None = None,
+) -> tuple[SplineAxis, FloatArray, dict[str, float | str]]:
+    """Seed 000's sparse optimisation (eq. 14) on one axis.
+
+    Parameters
+    ----------
+    ax, coef, cov : the densified axis, its fitted coefficients and their covariance.
+    times : ndarray
+        Where the fit tolerances are enforced (the rough trajectory's epochs).
+    fixed : sequence of float
+        Knots never dropped (events).
+    floor : (ndarray, ndarray), optional
+        Standard deviations of the rough trajectory's position and velocity on this axis
+        at ``times`` (an estimate's own uncertainty); the tolerances are at least 3 times
+        these.
+
+    Returns
+    -------
+    axis : SplineAxis
+        The reduced basis.
+    jumps : ndarray
+        ``p``-th-derivative jumps of the sparse solution at the candidate knots.
+    info : dict
+        ``solver``, ``status``, ``solve_time``.
+    """
+    import cvxpy as cp
+
+    c_all, tau = ax.jump_matrix()
+    fixed_arr = np.asarray(fixed, dtype=float)
+    cand = np.ones(tau.size, dtype=bool)
+    if fixed_arr.size:
+        cand &= np.min(np.abs(tau[:, None] - fixed_arr[None, :]), axis=1) > 1e-9
+    c = c_all[np.flatnonzero(cand)]
+    all_times = np.asarray(times, dtype=np.float64)
+    times = _constraint_times(ax, all_times)
+    k0, k1 = ax.design(times), ax.design(times, 1)
+    sd0 = np.sqrt(np.maximum(np.einsum('ij,ji->i', (k0 @ cov), k0.T.toarray()), 0.0))
+    sd1 = np.sqrt(np.maximum(np.einsum('ij,ji->i', (k1 @ cov), k1.T.toarray()), 0.0))
+    d0 = np.maximum(cfg.delta_position, 3.0 * sd0)
+    d1 = np.maximum(cfg.delta_velocity, 3.0 * sd1)
+    if floor is not None:
+        d0 = np.maximum(d0, 3.0 * np.interp(times, all_times, floor[0]))
+        d1 = np.maximum(d1, 3.0 * np.interp(times, all_times, floor[1]))
+    x = cp.Variable(ax.n_coef)
+    base = c @ coef
+    if float(np.max(np.abs(base), initial=0.0)) <= cfg.jump_epsilon:
+        # every candidate jump is already negligible (a rough trajectory that is one
+        # polynomial): drop them all without an LP that would only be scaled noise
+        interior = ax.interior
+        drop = set(np.round(tau[cand], 12))
+        kept = np.array([k for k in interior if round(float(k), 12) not in drop])
+        reduced = SplineAxis.from_interior(kept, ax.t0, ax.t1, ax.degree)
+        return (
+            reduced,
+            np.asarray(c_all @ coef),
+            {'solver': 'none', 'status': 'negligible jumps', 'solve_time': 0.0},
+        )
+    scale = 1.0 / float(np.max(np.abs(base)))
+    prob = cp.Problem(
+        cp.Minimize(scale * cp.norm1(c @ x + base)),
+        [cp.abs(k0 @ x) <= d0, cp.abs(k1 @ x) <= d1],
+    )
+    start = _time.perf_counter()
+    solver = cfg.solver.upper()
+    try:
+        if solver == 'HIGHS':
+            # interior point + crossover: a vertex (exact zeros) in half the simplex time;
+            # on a badly scaled problem the interior point may stall, and the dual
+            # simplex then usually still finds the vertex
+            try:
+                prob.solve(solver=solver, highs_options={'solver': 'ipm'})  # type: ignore[no-untyped-call]
+            except (cp.error.SolverError, ValueError):
+                prob.solve(solver=solver)  # type: ignore[no-untyped-call]
+            if prob.status != cp.OPTIMAL:
+                prob.solve(solver=solver)  # type: ignore[no-untyped-call]
+        else:
+            prob.solve(solver=solver)  # type: ignore[no-untyped-call]
+    except (cp.error.SolverError, ValueError) as exc:
+        # cvxpy raises ValueError when the solver ends with an unknown status
+        installed = cp.installed_solvers()  # type: ignore[no-untyped-call]
+        raise KnotSelectionError(
+            f'knot selection: solver {solver} failed ({exc}); installed: {installed}'
+        ) from exc
+    elapsed = _time.perf_counter() - start
+    if prob.status != cp.OPTIMAL or x.value is None:
+        raise KnotSelectionError(
+            f'knot selection: solver {solver} returned status {prob.status!r}, not optimal'
+        )
+    new = coef + np.asarray(x.value)
+    jumps = np.asarray(c @ new)
+    keep = np.abs(jumps) > max(cfg.jump_epsilon, 1e-7 * float(np.max(np.abs(jumps), initial=0)))
+    interior = ax.interior
+    drop = set(np.round(tau[cand][~keep], 12))
+    kept = np.array([k for k in interior if round(float(k), 12) not in drop])
+    reduced = SplineAxis.from_interior(kept, ax.t0, ax.t1, ax.degree)
+    return reduced, jumps, {'solver': solver, 'status': prob.status, 'solve_time': elapsed}
+
+
+def _constraint_times(ax: SplineAxis, t: FloatArray, per_interval: int = 4) -> FloatArray:
+    """Thin the epochs where the tolerances are enforced to about ``per_interval`` per
+    knot interval (all of them in short intervals): the LP shrinks, the fit does not."""
+    if t.size < 2:
+        return t
+    dt = float(np.median(np.diff(t)))
+    brk = np.unique(ax.knots)
+    j = np.clip(np.searchsorted(brk, t, side='right') - 1, 0, brk.size - 2)
+    length = (brk[1:] - brk[:-1])[j]
+    step = np.maximum(1, np.floor(length / (per_interval * dt))).astype(int)
+    first = np.searchsorted(t, brk[j], side='left')
+    keep = ((np.arange(t.size) - first) % step) == 0
+    return t[keep]
+
+
+@dataclass(frozen=True)
+class KnotSelection:
+    """Outcome of :func:`choose_knots`.
+
+    ``dense`` and ``selected`` hold the interior-knot counts per axis before and after
+    the sparse selection; ``coef`` is the rough trajectory fitted on the selected knots
+    (the Gauss-Newton start).
+    """
+
+    trajectory: SplineTrajectory
+    coef: FloatArray
+    events: tuple[float, ...]
+    dense: tuple[int, int, int]
+    selected: tuple[int, int, int]
+    rounds: int
+    solve_time: float
+    total_time: float
+    method: str
+    info: dict[str, str] = field(default_factory=dict)
+    refined: int = 0
+    rough_source: str = ''
+    """Knots added afterwards by the estimator's measurement-driven test."""
+
+
+def choose_knots(
+    rough: RoughTrajectory,
+    t0: float,
+    t1: float,
+    segments: Sequence[tuple[float, float]],
+    cfg: KnotConfig,
+    method: str = 'sparse',
+    frame: tuple[FloatArray, FloatArray] | None = None,
+    baseline_spacing: float = 3.0,
+    events: Sequence[float] | None = None,
+) -> KnotSelection:
+    """Knots of the trajectory spline over [t0, t1].
+
+    ``events`` overrides the detection of acceleration jumps.
+
+    ``method``: ``sparse`` (densify + l1 selection, the seed's method), ``dense``
+    (densified grid, no selection: baseline (c)), ``dynamics`` (baseline (b): events +
+    uniform ``baseline_spacing``).
+    """
+    start = _time.perf_counter()
+    frame = frame or spline_frame(rough)
+    if events is None:
+        events = detect_events(rough, cfg) if cfg.events else []
+    events = [e for e in events if t0 + cfg.base_spacing / 2 < e < t1 - cfg.base_spacing / 2]
+    solve = 0.0
+    info: dict[str, str] = {}
+    if method == 'dynamics':
+        knots = dynamics_knots(rough, t0, t1, baseline_spacing, events, cfg.degree)
+        axes = [SplineAxis.from_interior(knots, t0, t1, cfg.degree) for _ in range(3)]
+        dense = tuple(a.interior.size for a in axes)
+        selected, rounds = dense, 0
+    elif method == 'uniform':
+        knots = uniform_knots(t0, t1, cfg.base_spacing, segments, cfg.gap_spacing, (), cfg.degree)
+        axes = [SplineAxis.from_interior(knots, t0, t1, cfg.degree) for _ in range(3)]
+        dense = tuple(a.interior.size for a in axes)
+        selected, rounds = dense, 0
+    elif method in ('sparse', 'dense'):
+        axes, coefs, covs, rounds = densify(rough, frame, t0, t1, segments, events, cfg)
+        dense = tuple(a.interior.size for a in axes)
+        if method == 'sparse' and cfg.sparse:
+            red = []
+            floors = rough.axis_sigma(frame[1])
+            for a in range(3):
+                fl = None if floors is None else (floors[0][:, a], floors[1][:, a])
+                ax, _, inf = select_knots(
+                    axes[a], coefs[a], covs[a], rough.time, cfg, events, floor=fl
+                )
+                red.append(ax)
+                solve += float(inf['solve_time'])
+                info = {'solver': str(inf['solver']), 'status': str(inf['status'])}
+            axes = red
+        selected = tuple(a.interior.size for a in axes)
+    else:
+        raise ValueError(
+            f"method must be 'sparse', 'dense', 'uniform' or 'dynamics'; got {method!r}"
+        )
+    traj = SplineTrajectory((axes[0], axes[1], axes[2]), frame[0], frame[1])
+    coef = _fit_rough(traj, rough, cfg.rho)
+    return KnotSelection(
+        traj,
+        coef,
+        tuple(events),
+        (int(dense[0]), int(dense[1]), int(dense[2])),
+        (int(selected[0]), int(selected[1]), int(selected[2])),
+        rounds,
+        solve,
+        _time.perf_counter() - start,
+        method,
+        info,
+    )
+
+
+def _fit_rough(traj: SplineTrajectory, rough: RoughTrajectory, rho: float) -> FloatArray:
+    origin, rot = traj.origin, traj.rotation
+    lp = (rough.position - origin) @ rot
+    lv = None if rough.velocity is None else rough.velocity @ rot
+    out = []
+    for a, ax in enumerate(traj.axes):
+        coef, _ = _whitened_fit(ax, rough, lp[:, a], None if lv is None else lv[:, a], rho)
+        out.append(coef)
+    return np.concatenate(out)
