@@ -27,7 +27,7 @@ from orbit_tracking.core.estimation.bias_files import (
     write_biases_by_window_csv,
     write_biases_csv,
 )
-from orbit_tracking.core.estimation.estimator import BiasEstimate
+from orbit_tracking.core.estimation.results import BiasEstimate
 from orbit_tracking.core.models.measurements import KIND_FIELDS
 from orbit_tracking.core.models.systematic import BiasParameter
 from orbit_tracking.core.sim.scenario import load_scenario, truth_biases

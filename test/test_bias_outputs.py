@@ -12,7 +12,7 @@ import pytest
 import yaml
 
 from orbit_tracking.core.estimation.bias_files import read_biases_csv
-from orbit_tracking.core.estimation.estimator import BiasEstimate
+from orbit_tracking.core.estimation.results import BiasEstimate
 from orbit_tracking.core.sim.scenario import load_scenario, truth_biases
 from orbit_tracking.tools.cli import main as cli_main
 

@@ -10,8 +10,11 @@ import pytest
 
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.errors import MeasurementError
-from orbit_tracking.core.estimation.estimator import Estimate, EstimatorConfig, _Problem, estimate
+from orbit_tracking.core.estimation.config import EstimatorConfig
+from orbit_tracking.core.estimation.estimator import estimate
 from orbit_tracking.core.estimation.knots import KnotConfig, choose_knots, rough_trajectory
+from orbit_tracking.core.estimation.problem import Problem
+from orbit_tracking.core.estimation.results import Estimate
 from orbit_tracking.core.models.systematic import BiasParameter
 from orbit_tracking.core.sim.scenario import load_scenario
 from orbit_tracking.core.sim.simulator import SimulationResult, simulate
@@ -82,7 +85,7 @@ def test_bias_columns_of_the_jacobian_match_finite_differences():
     rough = rough_trajectory(win, 0, t0, t1)
     assert rough is not None
     sel = choose_knots(rough, t0, t1, [], KnotConfig(), 'uniform')
-    prob = _Problem(win, {0: (sel.trajectory, sel.coef)}, cfg, t0, t1)
+    prob = Problem(win, {0: (sel.trajectory, sel.coef)}, cfg, t0, t1)
     beta = np.zeros(prob.n)
     beta[: sel.trajectory.n_coef] = sel.coef
     beta[prob.bias_offset :] = [1.5, 3e-5, -2e-5, 3e-3, 1e-3]
@@ -242,21 +245,21 @@ def test_several_targets_share_the_satellite_biases_and_pin_them_better_than_any
 
 def test_the_thrust_along_velocity_constraint_lets_one_target_separate_the_biases():
     """Measured on seed003_q3: position RMS 2.26 km -> 0.25 km, biases within 0.2 sigma."""
-    from orbit_tracking.core.estimation.estimator import _thrust_normal
+    from orbit_tracking.core.estimation.problem import thrust_normal
     from orbit_tracking.tools.bench.biases import THRUST_SIGMA, declare_biases
 
     # the constraint's Jacobian against central differences
     rng = np.random.default_rng(1)
     p = rng.normal(size=(4, 3)) * 1e6 + [0.0, 6.5e6, 0.0]
     v, a = rng.normal(size=(4, 3)) * 1e3, rng.normal(size=(4, 3)) * 30.0
-    _, *jac = _thrust_normal(p, v, a, 3.986e14, True)
+    _, *jac = thrust_normal(p, v, a, 3.986e14, True)
     for i, step in enumerate((1.0, 1e-3, 1e-4)):
         for k in range(3):
             hi, lo = [p.copy(), v.copy(), a.copy()], [p.copy(), v.copy(), a.copy()]
             hi[i][:, k] += step
             lo[i][:, k] -= step
             num = (
-                _thrust_normal(*hi, 3.986e14, False)[0] - _thrust_normal(*lo, 3.986e14, False)[0]
+                thrust_normal(*hi, 3.986e14, False)[0] - thrust_normal(*lo, 3.986e14, False)[0]
             ) / (2 * step)
             np.testing.assert_allclose(jac[i][:, :, k], num, atol=1e-9)
     result, obs = _satellite_run('seed003_q3')

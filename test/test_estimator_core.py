@@ -18,19 +18,16 @@ from orbit_tracking.core import frames
 from orbit_tracking.core.data.observations import Observations, StationObservations
 from orbit_tracking.core.data.tables import MeasurementTable, TargetStates
 from orbit_tracking.core.estimation.bspline import SplineAxis, SplineTrajectory
-from orbit_tracking.core.estimation.estimator import (
-    EstimationError,
-    EstimatorConfig,
-    _gauss_newton,
-    _Problem,
-    estimate,
-)
+from orbit_tracking.core.estimation.config import EstimationError, EstimatorConfig
+from orbit_tracking.core.estimation.estimator import estimate
+from orbit_tracking.core.estimation.gauss_newton import gauss_newton
 from orbit_tracking.core.estimation.knots import (
     KnotConfig,
     _fit_rough,
     rough_trajectory,
     spline_frame,
 )
+from orbit_tracking.core.estimation.problem import Problem
 from orbit_tracking.core.models.measurements import StationPose, predict
 from orbit_tracking.core.sim.scenario import (
     Scenario,
@@ -117,7 +114,7 @@ def _observations(
 
 def _problem_on(
     obs: Observations, axes: tuple[SplineAxis, ...], cfg: EstimatorConfig
-) -> tuple[_Problem, SplineTrajectory, np.ndarray]:
+) -> tuple[Problem, SplineTrajectory, np.ndarray]:
     """The estimator's problem on given knots, in the estimator's own spline frame, started
     from its rough-trajectory fit."""
     t0, t1 = axes[0].t0, axes[0].t1
@@ -126,7 +123,7 @@ def _problem_on(
     origin, rot = spline_frame(rough)
     traj = SplineTrajectory((axes[0], axes[1], axes[2]), origin, rot)
     beta0 = _fit_rough(traj, rough, 0.5)
-    return _Problem(obs, {0: (traj, beta0)}, cfg, t0, t1), traj, beta0
+    return Problem(obs, {0: (traj, beta0)}, cfg, t0, t1), traj, beta0
 
 
 def test_noise_free_measurements_recover_a_spline_truth_through_estimate():
@@ -167,7 +164,7 @@ def test_noise_free_measurements_recover_a_spline_truth_with_a_staging_knot():
     t = np.linspace(0.0, 20.0, 201)
     truth = traj.states(coef, t)
     assert np.max(np.abs(est_traj.states(beta0, t)[:, :3] - truth[:, :3])) > 1e-2
-    out = _gauss_newton(prob, beta0, cfg)
+    out = gauss_newton(prob, beta0, cfg)
     assert out.converged, out.message
     x = est_traj.states(out.beta, t)
     np.testing.assert_allclose(x[:, :3], truth[:, :3], rtol=0.0, atol=1e-6)
@@ -211,7 +208,7 @@ def test_gauss_newton_reaches_the_least_squares_optimum_of_scipy(small_problem):
     # start 20 m away from the rough fit so that both solvers have real work to do
     beta0 = beta0 + np.random.default_rng(8).normal(0.0, 20.0, beta0.size)
     assert prob.cost(beta0) > 100.0 * prob.cost(small_problem[2])
-    out = _gauss_newton(prob, beta0, cfg)
+    out = gauss_newton(prob, beta0, cfg)
     assert out.converged, out.message
     ref = least_squares(
         lambda b: prob.evaluate(b, False)[0],

@@ -13,7 +13,7 @@ from orbit_tracking.core import frames
 from orbit_tracking.core.baselines.kalman import KalmanConfig, _start, smooth, tune_on_truth
 from orbit_tracking.core.data.observations import FixSeries, Observations, StationObservations
 from orbit_tracking.core.data.tables import MeasurementTable
-from orbit_tracking.core.estimation.estimator import EstimationError
+from orbit_tracking.core.estimation.config import EstimationError
 from orbit_tracking.core.models.measurements import StationPose, predict, residual
 
 LAT, LON = np.radians(40.9), np.radians(100.3)

@@ -15,7 +15,7 @@ from test_windows import write_short_scenario
 
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.estimation.bias_files import write_biases_by_window_csv, write_biases_csv
-from orbit_tracking.core.estimation.estimator import BiasEstimate
+from orbit_tracking.core.estimation.results import BiasEstimate
 from orbit_tracking.core.estimation.windows import write_trajectory_csv
 from orbit_tracking.core.metrics import hermite_states
 from orbit_tracking.core.sim.scenario import load_scenario

@@ -15,7 +15,7 @@ from test_windows import write_short_scenario
 
 from orbit_tracking.core import frames
 from orbit_tracking.core.data.observations import Observations
-from orbit_tracking.core.estimation.estimator import EstimatorConfig
+from orbit_tracking.core.estimation.config import EstimatorConfig
 from orbit_tracking.core.estimation.residuals import ResidualStats, window_residual_stats
 from orbit_tracking.core.estimation.stitcher import SampledWindow, TrajectoryStitcher
 from orbit_tracking.core.estimation.windows import (

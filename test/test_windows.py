@@ -13,8 +13,9 @@ import pytest
 
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.estimation.bspline import SplineAxis, SplineTrajectory
-from orbit_tracking.core.estimation.estimator import Estimate, EstimatorConfig, TargetSolution
+from orbit_tracking.core.estimation.config import EstimatorConfig
 from orbit_tracking.core.estimation.knots import KnotSelection
+from orbit_tracking.core.estimation.results import Estimate, TargetSolution
 from orbit_tracking.core.estimation.windows import (
     TRAJECTORY_CSV_COLUMNS,
     WindowConfig,

@@ -41,15 +41,11 @@ from orbit_tracking.core.data.buffer import ObservationBuffer
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.errors import OrbitTrackingError
 from orbit_tracking.core.estimation.bias_files import load_bias_declaration, station_fields
-from orbit_tracking.core.estimation.estimator import (
-    KNOT_METHODS,
-    Estimate,
-    EstimatorConfig,
-    TargetSolution,
-    estimate,
-)
+from orbit_tracking.core.estimation.config import KNOT_METHODS, EstimatorConfig
+from orbit_tracking.core.estimation.estimator import estimate
 from orbit_tracking.core.estimation.knots import KnotConfig
 from orbit_tracking.core.estimation.residuals import window_residual_stats
+from orbit_tracking.core.estimation.results import Estimate, TargetSolution
 from orbit_tracking.core.estimation.windows import (
     Span,
     WindowConfig,

@@ -41,7 +41,7 @@ from orbit_tracking.core.errors import OrbitTrackingError
 
 if TYPE_CHECKING:
     from orbit_tracking.core.sim.scenario import Scenario
-    from orbit_tracking.tools.offline import RecordingReport
+    from orbit_tracking.tools.recording import RecordingReport
 
 __all__ = ['main']
 
@@ -160,7 +160,7 @@ def _cmd_play(args: argparse.Namespace) -> int:
 def _cmd_triangulate(args: argparse.Namespace) -> int:
     from orbit_tracking.core.triangulation.alignment import AlignConfig
     from orbit_tracking.core.triangulation.intersection import Gates
-    from orbit_tracking.tools.offline import triangulate_bag
+    from orbit_tracking.tools.triangulate import triangulate_bag
 
     align = AlignConfig(
         period=args.period,
@@ -180,9 +180,9 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     import shutil
 
     from orbit_tracking.core.estimation.bias_files import load_bias_declaration
-    from orbit_tracking.core.estimation.estimator import EstimatorConfig
+    from orbit_tracking.core.estimation.config import EstimatorConfig
     from orbit_tracking.core.estimation.windows import WindowConfig
-    from orbit_tracking.tools.offline import estimate_bag
+    from orbit_tracking.tools.estimate import estimate_bag
 
     try:
         win = WindowConfig(args.window_length, args.overlap, output_step=args.output_step)
@@ -216,7 +216,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
     from orbit_tracking.core.sim.scenario import load_scenario
     from orbit_tracking.tools.live import NODES, SIMULATOR, run_live
-    from orbit_tracking.tools.offline import write_recorded_outputs
+    from orbit_tracking.tools.recording import write_recorded_outputs
     from orbit_tracking.tools.report import build_html_report, read_output_folder
     from orbit_tracking.tools.report_inputs import report_context
 
@@ -313,7 +313,7 @@ def _offline_check(
     offline with the estimator node's settings, and compare with the live trajectory: the
     same windows over the same data give the same states, unless data were lost or
     reordered on the way."""
-    from orbit_tracking.tools.offline import estimate_bag, estimator_configs
+    from orbit_tracking.tools.estimate import estimate_bag, estimator_configs
     from orbit_tracking.tools.simulate import simulate_to_bag
 
     est_cfg, win_cfg, biases = estimator_configs(est_params)

@@ -17,7 +17,7 @@ from rosbags.rosbag2 import ReaderError
 from orbit_tracking.core.errors import ConfigError
 from orbit_tracking.core.sim.scenario import load_scenario
 from orbit_tracking.ros.bag import read_bag
-from orbit_tracking.tools.offline import BagContext, read_for_estimation
+from orbit_tracking.tools.bag_inputs import BagContext, read_for_estimation
 from orbit_tracking.tools.report import RunContext, context_from_scenario
 
 __all__ = ['context_from_bag', 'find_input_bag', 'output_world_frame', 'report_context']

@@ -32,7 +32,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.stats import chi2
 
 from orbit_tracking.core.data.observations import Observations
-from orbit_tracking.core.estimation.estimator import EstimationError
+from orbit_tracking.core.estimation.config import EstimationError
 from orbit_tracking.core.models.measurements import StationPose, predict, residual
 
 __all__ = ['KalmanConfig', 'SmoothedTrack', 'smooth', 'tune_on_truth']

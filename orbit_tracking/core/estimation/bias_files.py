@@ -36,7 +36,7 @@ import yaml
 
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.errors import ConfigError
-from orbit_tracking.core.estimation.estimator import BiasEstimate
+from orbit_tracking.core.estimation.results import BiasEstimate
 from orbit_tracking.core.models.measurements import FIELDS
 from orbit_tracking.core.models.systematic import CLOCK, ESTIMABLE_BIASES, BiasParameter
 from orbit_tracking.core.schema import REQUIRED, Bool, Check, Choice, ListOf, Num, Obj, Str

@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 
 if TYPE_CHECKING:  # the estimator is heavy to import; the messages only need ResidualStats
     from orbit_tracking.core.data.observations import Observations
-    from orbit_tracking.core.estimation.estimator import Estimate
+    from orbit_tracking.core.estimation.results import Estimate
 
 __all__ = ['ResidualStats', 'window_residual_stats']
 

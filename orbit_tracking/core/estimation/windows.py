@@ -35,12 +35,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.errors import OrbitTrackingError
-from orbit_tracking.core.estimation.estimator import (
-    Estimate,
-    EstimatorConfig,
-    TargetSolution,
-    estimate,
-)
+from orbit_tracking.core.estimation.config import EstimatorConfig
+from orbit_tracking.core.estimation.estimator import estimate
+from orbit_tracking.core.estimation.results import Estimate, TargetSolution
 from orbit_tracking.core.time import format_stamp, parse_stamp
 
 __all__ = [

@@ -22,7 +22,9 @@ import numpy as np
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.errors import OrbitTrackingError
 from orbit_tracking.core.estimation.bias_files import DEFAULT_PRIOR_SIGMA, auto_biases
-from orbit_tracking.core.estimation.estimator import Estimate, EstimatorConfig, estimate
+from orbit_tracking.core.estimation.config import EstimatorConfig
+from orbit_tracking.core.estimation.estimator import estimate
+from orbit_tracking.core.estimation.results import Estimate
 from orbit_tracking.core.metrics import nees
 from orbit_tracking.core.models.systematic import BiasParameter
 from orbit_tracking.core.sim.scenario import Scenario, load_scenario, truth_biases

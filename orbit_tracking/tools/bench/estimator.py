@@ -39,13 +39,10 @@ import numpy as np
 from orbit_tracking.core.baselines.kalman import KalmanConfig, SmoothedTrack, smooth, tune_on_truth
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.errors import OrbitTrackingError
-from orbit_tracking.core.estimation.estimator import (
-    Estimate,
-    EstimatorConfig,
-    TargetSolution,
-    estimate,
-)
+from orbit_tracking.core.estimation.config import EstimatorConfig
+from orbit_tracking.core.estimation.estimator import estimate
 from orbit_tracking.core.estimation.knots import KnotConfig
+from orbit_tracking.core.estimation.results import Estimate, TargetSolution
 from orbit_tracking.core.metrics import nees
 from orbit_tracking.core.sim.scenario import Scenario, load_scenario
 from orbit_tracking.core.sim.simulator import SimulationResult, World, simulate

@@ -1,0 +1,130 @@
+"""Settings of the seed-000 window estimator (:class:`EstimatorConfig`) and its error type."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from orbit_tracking.core.errors import OrbitTrackingError
+from orbit_tracking.core.estimation.coverage import (
+    CoverageConfig,
+)
+from orbit_tracking.core.estimation.knots import (
+    KnotConfig,
+)
+from orbit_tracking.core.models.systematic import BiasParameter
+
+__all__ = ['KNOT_METHODS', 'EstimationError', 'EstimatorConfig', 'Segment']
+
+
+FloatArray = NDArray[np.float64]
+
+
+Segment = tuple[float, float]
+
+
+KNOT_METHODS: tuple[str, ...] = ('sparse', 'dense', 'uniform', 'dynamics', 'polynomial')
+
+
+class EstimationError(OrbitTrackingError, RuntimeError):
+    """A window cannot be estimated (no data, no rough trajectory, singular problem)."""
+
+
+@dataclass(frozen=True)
+class EstimatorConfig:
+    """Settings of one window's estimation.
+
+    Attributes
+    ----------
+    knots : KnotConfig
+    knot_method : str
+        ``sparse`` (the seed's method), or the baselines ``dynamics`` (b), ``uniform``
+        (c, dense uniform knots), ``dense`` (densified, no selection), ``polynomial``
+        (a, one polynomial of ``polynomial_degree`` per axis over the window).
+    baseline_spacing : float
+        Knot spacing [s] of the ``dynamics`` baseline.
+    polynomial_degree : int
+    max_iterations, tolerance, max_halvings :
+        Gauss-Newton stops when the relative cost change falls below ``tolerance`` or
+        after ``max_iterations``; a step is halved at most ``max_halvings`` times.
+    gate_sigma : float
+        Whitened-residual gate (0 disables it); ``gate_rounds`` re-solves at most.
+    use_telemetry : bool
+        Fuse telemetry as weighted measurements with its own error model (whose knots
+        the measurement-driven test refines like the trajectory's).
+    telemetry_error_spacing : float
+        Knot spacing [s] of the telemetry error spline (cubic).
+    estimate_telemetry_noise : bool
+        Re-estimate the telemetry white-noise levels from the residuals.
+    fix_weight : float
+        Fixes as measurements with covariance / ``fix_weight``; 0 = not used.
+    refine_rounds : int
+        Rounds of measurement-driven knot insertion after the solve (0 = off).
+    refine_alpha : float
+        Family-wise false-alarm probability of that knot test.
+    biases : tuple of BiasParameter
+        Systematic errors estimated jointly with the trajectories (shared by every
+        target a station sees), or held at known values.
+    bias_observability : float
+        A bias whose posterior sigma exceeds this fraction of its prior sigma is not
+        separable from the trajectory with this geometry: it is frozen at its prior and
+        reported as unobservable.
+    thrust_along_velocity : float
+        Sigma [m/s^2] of an optional dynamics constraint for a vehicle boosting with its
+        thrust along the velocity (zero angle of attack, seed 003): at every
+        ``thrust_grid`` seconds the component of ``a - g(p)`` normal to ``v`` is a
+        pseudo-measurement of zero. Needs an inertial, Earth-centred world frame (point-mass
+        gravity ``gm``; J2 is left in the sigma). 0 (default) = off. It is what lets one
+        target separate the satellites' biases from its trajectory.
+    thrust_grid : float
+        Spacing [s] of those pseudo-measurements.
+    gm : float
+        Gravitational parameter [m^3/s^2] of that constraint.
+    segments : tuple of (start, end)
+        Declared incomplete segments [s] (added to the detected ones).
+    detect_segments : bool
+    coverage : CoverageConfig
+    """
+
+    knots: KnotConfig = field(default_factory=KnotConfig)
+    knot_method: str = 'sparse'
+    baseline_spacing: float = 3.0
+    polynomial_degree: int = 6
+    max_iterations: int = 20
+    tolerance: float = 1e-9
+    max_halvings: int = 12
+    gate_sigma: float = 5.0
+    gate_rounds: int = 3
+    use_telemetry: bool = True
+    telemetry_error_spacing: float = 15.0
+    estimate_telemetry_noise: bool = True
+    fix_weight: float = 0.0
+    refine_rounds: int = 4
+    refine_alpha: float = 0.01
+    biases: tuple[BiasParameter, ...] = ()
+    bias_observability: float = 0.9
+    thrust_along_velocity: float = 0.0
+    thrust_grid: float = 0.5
+    gm: float = 3.986005e14
+    segments: tuple[Segment, ...] = ()
+    detect_segments: bool = True
+    coverage: CoverageConfig = field(default_factory=CoverageConfig)
+
+    def __post_init__(self) -> None:
+        if self.knot_method not in KNOT_METHODS:
+            raise ValueError(
+                f'knot_method must be one of {KNOT_METHODS}; got {self.knot_method!r}'
+            )
+        if self.max_iterations < 1 or self.max_halvings < 0:
+            raise ValueError('max_iterations must be >= 1 and max_halvings >= 0')
+        if self.gate_sigma < 0.0 or self.fix_weight < 0.0:
+            raise ValueError('gate_sigma and fix_weight must be >= 0')
+        if self.telemetry_error_spacing <= 0.0:
+            raise ValueError('telemetry_error_spacing must be > 0')
+        if self.thrust_along_velocity < 0.0 or self.thrust_grid <= 0.0 or self.gm <= 0.0:
+            raise ValueError('thrust_along_velocity must be >= 0, thrust_grid and gm > 0')
+        for a, b in self.segments:
+            if not b > a:
+                raise ValueError(f'segment ({a}, {b}) must have end > start')

@@ -1,0 +1,92 @@
+"""Which station biases the window's data can determine: unobservable ones are frozen
+(kept as consider parameters) before and after the solve, and the estimates of the others
+are reported with their covariance."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from orbit_tracking.core.estimation.config import EstimatorConfig
+from orbit_tracking.core.estimation.problem import Problem
+from orbit_tracking.core.estimation.results import BiasEstimate
+
+__all__ = ['bias_estimates', 'freeze_unobservable']
+
+FloatArray = NDArray[np.float64]
+
+
+def freeze_unobservable(
+    prob: Problem, beta: FloatArray, cov: FloatArray, cfg: EstimatorConfig, when: str
+) -> bool:
+    """Freeze at their priors the biases the data do not separate from the rest.
+
+    A bias is observable when the measurements shrink its uncertainty well below its
+    prior: posterior sigma at most ``bias_observability`` times the prior sigma. Those
+    that fail are reset to the prior, get a vanishing prior sigma (so they no longer
+    move) and are reported with the reason, including their strongest correlation.
+    Returns True if any bias was frozen.
+    """
+    frozen = False
+    o = prob.bias_offset
+    sd = np.sqrt(np.maximum(np.diag(cov), 1e-300))
+    for q, bp in enumerate(prob.biases):
+        if prob.bias_status[q] != 'estimated':
+            continue
+        ratio = sd[o + q] / bp.sigma
+        if ratio <= cfg.bias_observability:
+            continue
+        corr = cov[o + q] / (sd[o + q] * sd)
+        corr[o + q] = 0.0
+        k = int(np.argmax(np.abs(corr)))
+        what = _parameter_name(prob, k)
+        prob.bias_status[q] = (
+            f'unobservable ({when}): the data leave {ratio:.0%} of its prior sigma '
+            f'(strongest correlation {corr[k]:+.3f} with {what}); held at its prior'
+        )
+        prob.bias_sigma[q] = bp.sigma * 1e-9
+        beta[o + q] = bp.prior
+        frozen = True
+    return frozen
+
+
+def _parameter_name(prob: Problem, k: int) -> str:
+    if k >= prob.bias_offset:
+        bp = prob.biases[k - prob.bias_offset]
+        return f'bias {bp.station}/{bp.name}'
+    for tb in prob.telemetry:
+        if tb.offset <= k < tb.offset + 3 * tb.axis.n_coef:
+            return f'telemetry error of target {tb.target}'
+    for tid, off in prob.offsets.items():
+        if off <= k < off + prob.trajs[tid].n_coef:
+            return f'trajectory of target {tid}'
+    return f'parameter {k}'
+
+
+def bias_estimates(prob: Problem, beta: FloatArray, cov: FloatArray) -> tuple[BiasEstimate, ...]:
+    o = prob.bias_offset
+    out = []
+    for q, bp in enumerate(prob.biases):
+        status = prob.bias_status[q]
+        estimated = status == 'estimated'
+        value = float(beta[o + q])
+        for side, limit in (('lower', bp.bounds[0]), ('upper', bp.bounds[1])):
+            if estimated and math.isfinite(limit) and abs(value - limit) <= 1e-9 * bp.sigma:
+                status = (
+                    f'estimated, at its {side} bound {limit:g}: the data push beyond it, '
+                    'so the sigma is conditional on the bound'
+                )
+        out.append(
+            BiasEstimate(
+                bp.station,
+                bp.name,
+                value,
+                float(np.sqrt(max(cov[o + q, o + q], 0.0))) if estimated else float(bp.sigma),
+                bp.prior,
+                bp.sigma,
+                status,
+            )
+        )
+    return tuple(out)

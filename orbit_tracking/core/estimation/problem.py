@@ -1,0 +1,422 @@
+"""The least-squares problem of one window (seed 000, eq. 7): the unknowns (spline
+coefficients of every target, telemetry error splines, station biases), the whitened
+measurement rows of stations, telemetry, fixes and the thrust constraint, and their sparse
+Jacobian. :class:`Problem` evaluates residuals and Jacobians; the solver is in
+:mod:`~orbit_tracking.core.estimation.gauss_newton`."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import NDArray
+
+from orbit_tracking.core.data.observations import Observations
+from orbit_tracking.core.estimation.bspline import SplineAxis, SplineTrajectory
+from orbit_tracking.core.estimation.config import EstimatorConfig
+from orbit_tracking.core.estimation.knots import (
+    uniform_knots,
+)
+from orbit_tracking.core.models.measurements import predict, residual
+from orbit_tracking.core.models.systematic import CLOCK, BiasModel
+
+__all__ = ['Problem', 'thrust_normal']
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass
+class _StationBlock:
+    station: str
+    target: int
+    fields: tuple[str, ...]
+    time: FloatArray
+    values: FloatArray
+    sigmas: FloatArray
+    pose: object
+    pw: sp.csr_matrix  # (3m, n_t) world position design
+    vw: sp.csr_matrix
+    valid: NDArray[np.bool_]  # (m, k)
+    bias_index: list[int] = field(default_factory=list)  # into Problem.biases
+    clock: int | None = None  # position of the clock bias in bias_index
+    tau: float = 0.0  # clock offset the designs pw, vw (and aw) are evaluated at
+    aw: sp.csr_matrix | None = None  # acceleration design (clock Jacobian)
+
+
+@dataclass
+class _TelemetryBlock:
+    target: int
+    time: FloatArray
+    position: FloatArray
+    velocity: FloatArray
+    pw: sp.csr_matrix
+    vw: sp.csr_matrix
+    ew: sp.csr_matrix  # (3m, 3 n_e) error design (position)
+    edw: sp.csr_matrix
+    axis: SplineAxis
+    offset: int  # first error coefficient
+    prior_sigma: tuple[float, float]
+    noise: list[float]  # [position, velocity] white sigma
+    valid_p: NDArray[np.bool_]
+    valid_v: NDArray[np.bool_]
+
+
+@dataclass
+class _FixBlock:
+    target: int
+    time: FloatArray
+    position: FloatArray
+    whiten: FloatArray  # (m, 3, 3), W^T W = weight * inv(cov)
+    pw: sp.csr_matrix
+    valid: NDArray[np.bool_]
+
+
+def _row_contract(h: FloatArray, design: sp.csr_matrix) -> sp.csr_matrix:
+    """Rows ``sum_c h[i, j, c] design[3 i + c]`` for every (i, j): (m k, n)."""
+    m, k, _ = h.shape
+    indptr = np.arange(m * k + 1) * 3
+    indices = (3 * np.arange(m)[:, None, None] + np.arange(3)[None, None, :]).repeat(k, axis=1)
+    s = sp.csr_matrix((h.ravel(), indices.ravel(), indptr), shape=(m * k, 3 * m))
+    return (s @ design).tocsr()
+
+
+def thrust_normal(
+    p: FloatArray, v: FloatArray, a: FloatArray, gm: float, jacobian: bool
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """``c = (I - u u^T)(a - g(p))`` with ``u = v/|v|`` and ``g = -gm p/|p|^3``: the
+    non-gravitational acceleration normal to the velocity, (m, 3); and its derivatives
+    by p, v and a, (m, 3, 3) each (zeros when ``jacobian`` is False)."""
+    rn = np.linalg.norm(p, axis=1)
+    g = -gm * p / rn[:, None] ** 3
+    f = a - g
+    vn = np.linalg.norm(v, axis=1)
+    u = v / vn[:, None]
+    eye = np.eye(3)
+    proj = eye - np.einsum('mi,mj->mij', u, u)
+    c = np.einsum('mij,mj->mi', proj, f)
+    m = p.shape[0]
+    if not jacobian:
+        z = np.zeros((m, 3, 3))
+        return c, z, z, z
+    dg = -gm * (
+        eye / rn[:, None, None] ** 3 - 3.0 * np.einsum('mi,mj->mij', p, p) / rn[:, None, None] ** 5
+    )
+    jp = -np.einsum('mij,mjk->mik', proj, dg)
+    fm = np.einsum('mj,mjk->mk', f, proj)  # f^T (I - u u^T)
+    fu = np.einsum('mi,mi->m', f, u)
+    jv = -(np.einsum('mi,mk->mik', u, fm) + fu[:, None, None] * proj) / vn[:, None, None]
+    return c, jp, jv, proj
+
+
+def _shift(mat: sp.spmatrix, offset: int, n: int) -> sp.csr_matrix:
+    coo = mat.tocoo()
+    return sp.csr_matrix((coo.data, (coo.row, coo.col + offset)), shape=(coo.shape[0], n))
+
+
+class Problem:
+    def __init__(
+        self,
+        obs: Observations,
+        solutions: dict[int, tuple[SplineTrajectory, FloatArray]],
+        cfg: EstimatorConfig,
+        t0: float,
+        t1: float,
+        tel_axes: Mapping[int, SplineAxis] | None = None,
+    ) -> None:
+        self.cfg = cfg
+        self.offsets: dict[int, int] = {}
+        n = 0
+        for tid, (traj, _) in solutions.items():
+            self.offsets[tid] = n
+            n += traj.n_coef
+        self.trajs = {tid: s[0] for tid, s in solutions.items()}
+        self.origin = {tid: tr.origin for tid, tr in self.trajs.items()}
+        self.stations: list[_StationBlock] = []
+        for s in obs.stations:
+            tab = s.table
+            for tid in self.trajs:
+                sel = tab.target_id == tid
+                if not np.any(sel):
+                    continue
+                idx = np.flatnonzero(sel)
+                t = tab.time[idx]
+                traj = self.trajs[tid]
+                valid = np.isfinite(tab.values[idx]) & (tab.sigmas[idx] > 0)
+                self.stations.append(
+                    _StationBlock(
+                        tab.station_id,
+                        tid,
+                        tab.fields,
+                        t,
+                        tab.values[idx],
+                        tab.sigmas[idx],
+                        s.pose.take(idx),
+                        traj.world_design(t, 0),
+                        traj.world_design(t, 1),
+                        valid,
+                    )
+                )
+        self.telemetry: list[_TelemetryBlock] = []
+        if cfg.use_telemetry:
+            for tid, tel in obs.telemetry.items():
+                if tid not in self.trajs or len(tel) < 4:
+                    continue
+                traj = self.trajs[tid]
+                if tel_axes and tid in tel_axes:
+                    axis = tel_axes[tid]
+                else:
+                    knots = uniform_knots(t0, t1, cfg.telemetry_error_spacing, degree=3)
+                    axis = SplineAxis.from_interior(knots, t0, t1, 3)
+                e0, e1 = axis.design(tel.time, 0), axis.design(tel.time, 1)
+                i3 = sp.identity(3, format='csr')
+                self.telemetry.append(
+                    _TelemetryBlock(
+                        tid,
+                        tel.time,
+                        tel.position,
+                        tel.velocity,
+                        traj.world_design(tel.time, 0),
+                        traj.world_design(tel.time, 1),
+                        sp.kron(e0, i3, format='csr'),
+                        sp.kron(e1, i3, format='csr'),
+                        axis,
+                        n,
+                        (
+                            float(np.median(tel.position_sigma)),
+                            float(np.median(tel.velocity_sigma)),
+                        ),
+                        [
+                            float(np.median(tel.position_sigma)),
+                            float(np.median(tel.velocity_sigma)),
+                        ],
+                        np.asarray(np.isfinite(tel.position).all(axis=1)),
+                        np.asarray(np.isfinite(tel.velocity).all(axis=1)),
+                    )
+                )
+                n += 3 * axis.n_coef
+        self.fixes: list[_FixBlock] = []
+        if cfg.fix_weight > 0.0:
+            for tid, fx in obs.fixes.items():
+                if tid not in self.trajs or not len(fx):
+                    continue
+                inv = np.linalg.inv(fx.covariance) * cfg.fix_weight
+                w = np.transpose(np.linalg.cholesky(inv), (0, 2, 1))
+                self.fixes.append(
+                    _FixBlock(
+                        tid,
+                        fx.time,
+                        fx.position,
+                        w,
+                        self.trajs[tid].world_design(fx.time, 0),
+                        np.asarray(np.isfinite(fx.position).all(axis=1)),
+                    )
+                )
+        # the thrust-along-velocity constraint: designs on a grid per target
+        self.dynamics: list[tuple[int, sp.csr_matrix, sp.csr_matrix, sp.csr_matrix]] = []
+        if cfg.thrust_along_velocity > 0.0:
+            for tid, traj in self.trajs.items():
+                tg = np.arange(t0 + 0.5 * cfg.thrust_grid, t1, cfg.thrust_grid)
+                self.dynamics.append((tid, *(traj.world_design(tg, nu) for nu in (0, 1, 2))))
+        present = {b.station for b in self.stations}
+        self.biases = [bp for bp in cfg.biases if bp.station in present]
+        for b in self.stations:
+            b.bias_index = [q for q, bp in enumerate(self.biases) if bp.station == b.station]
+            names = [self.biases[q].name for q in b.bias_index]
+            b.clock = names.index(CLOCK) if CLOCK in names else None
+        self.bias_offset = n
+        n += len(self.biases)
+        # prior sigma of each bias; a frozen or known bias gets a vanishing one
+        self.bias_sigma = np.array(
+            [bp.sigma if bp.estimate else bp.sigma * 1e-9 for bp in self.biases], dtype=float
+        )
+        self.bias_prior = np.array([bp.prior for bp in self.biases], dtype=float)
+        self.bias_status = ['estimated' if bp.estimate else 'known' for bp in self.biases]
+        self.bias_lower = np.array([bp.bounds[0] for bp in self.biases], dtype=float)
+        self.bias_upper = np.array([bp.bounds[1] for bp in self.biases], dtype=float)
+        self.n = n
+        self.gated: dict[int, NDArray[np.bool_]] = {}
+        self.gate_refused = 0.0
+        self.rows: list[tuple[int, FloatArray, FloatArray, FloatArray, bool]] = []
+
+    # -- evaluation ------------------------------------------------------------------
+
+    def predict_block(
+        self, bi: int, beta: FloatArray, jacobian: bool = False
+    ) -> tuple[FloatArray, FloatArray | None, FloatArray | None]:
+        """Measured values predicted for station block ``bi`` (biases applied), with
+        ``d/d state`` (m, k, 6) and ``d/d biases`` (m, k, p) of the block's biases."""
+        b = self.stations[bi]
+        coef = self._coef(beta, b.target)
+        idx = self.bias_offset + np.asarray(b.bias_index, dtype=int)
+        if b.clock is not None:
+            self._clock_designs(b, float(beta[idx[b.clock]]))
+        m = b.time.size
+        p = (b.pw @ coef).reshape(m, 3) + self.origin[b.target]
+        v = (b.vw @ coef).reshape(m, 3)
+        true, h = predict(b.fields, np.hstack([p, v]), b.pose, jacobian=jacobian)  # type: ignore[arg-type]
+        if not b.bias_index:
+            return true, h, None
+        names = [self.biases[q].name for q in b.bias_index]
+        keep = [j for j, name in enumerate(names) if name != CLOCK]
+        values = beta[idx]
+        model = BiasModel({names[j]: float(values[j]) for j in keep})
+        measured = model.apply(b.fields, true)
+        if not jacobian or h is None:
+            return measured, None, None
+        d_true, d_value = model.jacobian(b.fields, true, [names[j] for j in keep])
+        h_meas = np.einsum('mkj,mjs->mks', d_true, h)
+        d_param = np.zeros((m, len(b.fields), len(names)))
+        d_param[:, :, keep] = d_value
+        if b.clock is not None:
+            # the row tagged t measured the target at t + clock: d/d clock = H [v; a]
+            assert b.aw is not None
+            a = (b.aw @ coef).reshape(m, 3)
+            d_param[:, :, b.clock] = np.einsum('mks,ms->mk', h_meas, np.hstack([v, a]))
+        return measured, h_meas, d_param
+
+    def _clock_designs(self, b: _StationBlock, tau: float) -> None:
+        """Designs of a block at its rows' true epochs ``t + tau`` (rebuilt when the
+        clock estimate moves)."""
+        if b.aw is not None and tau == b.tau:
+            return
+        traj = self.trajs[b.target]
+        t = np.clip(b.time + tau, traj.t0, traj.t1)  # a row at the edge stays on it
+        b.pw, b.vw, b.aw = (traj.world_design(t, nu) for nu in (0, 1, 2))
+        b.tau = tau
+
+    def project(self, beta: FloatArray) -> FloatArray:
+        """``beta`` with every bias clipped into its declared bounds."""
+        if self.biases:
+            sl = slice(self.bias_offset, self.bias_offset + len(self.biases))
+            beta[sl] = np.clip(beta[sl], self.bias_lower, self.bias_upper)
+        return beta
+
+    def _coef(self, beta: FloatArray, tid: int) -> FloatArray:
+        o = self.offsets[tid]
+        return beta[o : o + self.trajs[tid].n_coef]
+
+    def evaluate(
+        self, beta: FloatArray, jacobian: bool
+    ) -> tuple[FloatArray, sp.csr_matrix | None, list[tuple[str, int, NDArray[np.bool_]]]]:
+        """Whitened residuals (and Jacobian of the model, ``d F / d beta``)."""
+        res: list[FloatArray] = []
+        jac: list[sp.csr_matrix] = []
+        tags: list[tuple[str, int, NDArray[np.bool_]]] = []
+        # per residual row: target, time, dF/dp and dF/dv (whitened), for the knot test
+        rows: list[tuple[int, FloatArray, FloatArray, FloatArray, bool]] = []
+        for bi, b in enumerate(self.stations):
+            pred, h, dpar = self.predict_block(bi, beta, jacobian)
+            r = residual(b.fields, np.nan_to_num(b.values), pred) / b.sigmas
+            use = b.valid & ~self.gated.get(bi, np.zeros_like(b.valid))
+            res.append(r[use])
+            tags.append(('station', bi, use))
+            if jacobian:
+                assert h is not None
+                hw = h / b.sigmas[:, :, None]
+                jm = _row_contract(hw[:, :, :3], b.pw) + _row_contract(hw[:, :, 3:], b.vw)
+                jm = jm[np.flatnonzero(use.ravel())]
+                jm = _shift(jm, self.offsets[b.target], self.n)
+                if dpar is not None:
+                    dw = (dpar / b.sigmas[:, :, None])[use]  # (rows, p)
+                    cols = self.bias_offset + np.asarray(b.bias_index)
+                    rr, cc = np.nonzero(dw)
+                    jm = jm + sp.csr_matrix(
+                        (dw[rr, cc], (rr, cols[cc])), shape=(dw.shape[0], self.n)
+                    )
+                jac.append(jm)
+                tt = np.broadcast_to(b.time[:, None], use.shape)[use]
+                rows.append((b.target, tt, hw[:, :, :3][use], hw[:, :, 3:][use], False))
+        for tb in self.telemetry:
+            coef = self._coef(beta, tb.target)
+            ecoef = beta[tb.offset : tb.offset + 3 * tb.axis.n_coef]
+            m = tb.time.size
+            pred_p = (tb.pw @ coef + tb.ew @ ecoef).reshape(m, 3) + self.origin[tb.target]
+            pred_v = (tb.vw @ coef + tb.edw @ ecoef).reshape(m, 3)
+            sp_, sv_ = tb.noise
+            rp = ((np.nan_to_num(tb.position) - pred_p) / sp_)[tb.valid_p].ravel()
+            rv = ((np.nan_to_num(tb.velocity) - pred_v) / sv_)[tb.valid_v].ravel()
+            prior = ecoef / np.tile([tb.prior_sigma[0]], ecoef.size)
+            res.extend([rp, rv, -prior])
+            tags.append(('telemetry_position', tb.target, tb.valid_p))
+            tags.append(('telemetry_velocity', tb.target, tb.valid_v))
+            tags.append(('telemetry_prior', tb.target, np.ones(ecoef.size, dtype=bool)))
+            if jacobian:
+                rows_p = np.flatnonzero(np.repeat(tb.valid_p, 3))
+                rows_v = np.flatnonzero(np.repeat(tb.valid_v, 3))
+                o = self.offsets[tb.target]
+                jp = _shift(tb.pw[rows_p], o, self.n) + _shift(tb.ew[rows_p], tb.offset, self.n)
+                jv = _shift(tb.vw[rows_v], o, self.n) + _shift(tb.edw[rows_v], tb.offset, self.n)
+                jac.extend([jp / sp_, jv / sv_])
+                pj = sp.identity(ecoef.size, format='csr') / tb.prior_sigma[0]
+                jac.append(-_shift(pj, tb.offset, self.n))
+                eye = np.eye(3)
+                for valid, sig, vel in ((tb.valid_p, sp_, False), (tb.valid_v, sv_, True)):
+                    nv = int(valid.sum())
+                    unit = np.tile(eye / sig, (nv, 1))
+                    zero = np.zeros_like(unit)
+                    tt = np.repeat(tb.time[valid], 3)
+                    rows.append(
+                        (tb.target, tt, zero if vel else unit, unit if vel else zero, True)
+                    )
+                z = np.zeros((ecoef.size, 3))
+                rows.append((-1, np.zeros(ecoef.size), z, z, False))
+        for fb in self.fixes:
+            coef = self._coef(beta, fb.target)
+            m = fb.time.size
+            d = fb.position - (fb.pw @ coef).reshape(m, 3) - self.origin[fb.target]
+            r = np.einsum('mij,mj->mi', fb.whiten, d)[fb.valid].ravel()
+            res.append(r)
+            tags.append(('fix', fb.target, fb.valid))
+            if jacobian:
+                wblk = sp.block_diag(list(fb.whiten), format='csr')
+                jm = (wblk @ fb.pw)[np.flatnonzero(np.repeat(fb.valid, 3))]
+                jac.append(_shift(jm, self.offsets[fb.target], self.n))
+                wv = fb.whiten[fb.valid].reshape(-1, 3)
+                tt = np.repeat(fb.time[fb.valid], 3)
+                rows.append((fb.target, tt, wv, np.zeros_like(wv), False))
+        for tid, dp, dv, da in self.dynamics:
+            coef = self._coef(beta, tid)
+            c, jp, jv, ja = thrust_normal(
+                (dp @ coef).reshape(-1, 3) + self.origin[tid],
+                (dv @ coef).reshape(-1, 3),
+                (da @ coef).reshape(-1, 3),
+                self.cfg.gm,
+                jacobian,
+            )
+            sig = self.cfg.thrust_along_velocity
+            res.append(-c.ravel() / sig)
+            tags.append(('thrust', tid, np.ones(c.shape[0], dtype=bool)))
+            if jacobian:
+                jm = (
+                    _row_contract(jp / sig, dp)
+                    + _row_contract(jv / sig, dv)
+                    + _row_contract(ja / sig, da)
+                )
+                jac.append(_shift(jm, self.offsets[tid], self.n))
+                z = np.zeros((c.size, 3))
+                rows.append((-1, np.zeros(c.size), z, z, False))
+        if self.biases:
+            bvals = beta[self.bias_offset : self.bias_offset + len(self.biases)]
+            res.append((self.bias_prior - bvals) / self.bias_sigma)
+            tags.append(('bias_prior', -1, np.ones(len(self.biases), dtype=bool)))
+            if jacobian:
+                q = np.arange(len(self.biases))
+                jac.append(
+                    sp.csr_matrix(
+                        (1.0 / self.bias_sigma, (q, self.bias_offset + q)),
+                        shape=(q.size, self.n),
+                    )
+                )
+                z = np.zeros((q.size, 3))
+                rows.append((-1, np.zeros(q.size), z, z, False))
+        r_all = np.concatenate(res) if res else np.zeros(0)
+        j_all = sp.vstack(jac).tocsr() if jacobian and jac else None
+        if jacobian:
+            self.rows = rows
+        return r_all, j_all, tags
+
+    def cost(self, beta: FloatArray) -> float:
+        r, _, _ = self.evaluate(beta, False)
+        return float(r @ r)

@@ -1,0 +1,147 @@
+"""What a window solve returns: per-target spline solutions with their coefficient
+covariance (:class:`TargetSolution`, states and covariance at any time), the estimated
+biases (:class:`BiasEstimate`) and the whole window (:class:`Estimate`)."""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import NDArray
+
+from orbit_tracking.core.estimation.bspline import SplineAxis, SplineTrajectory
+from orbit_tracking.core.estimation.config import EstimationError, Segment
+from orbit_tracking.core.estimation.knots import (
+    KnotSelection,
+)
+
+__all__ = ['BiasEstimate', 'Estimate', 'TargetSolution', 'state_covariance']
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class TargetSolution:
+    """The fitted trajectory of one target.
+
+    ``covariance`` is the marginal covariance of ``coef`` (all other parameters
+    estimated too); use :meth:`states` for position/velocity and their covariance.
+    """
+
+    target_id: int
+    trajectory: SplineTrajectory
+    coef: FloatArray
+    covariance: FloatArray
+    knots: KnotSelection
+    segments: tuple[Segment, ...]
+    telemetry_error: tuple[SplineAxis, FloatArray] | None = None
+    telemetry_noise: tuple[float, float] | None = None
+
+    @property
+    def t0(self) -> float:
+        return self.trajectory.t0
+
+    @property
+    def t1(self) -> float:
+        return self.trajectory.t1
+
+    def states(self, t: Sequence[float] | FloatArray) -> tuple[FloatArray, FloatArray]:
+        """World-frame (position, velocity) (m, 6) and their covariance (m, 6, 6)."""
+        tt = np.asarray(t, dtype=np.float64)
+        return self.trajectory.states(self.coef, tt), state_covariance(
+            self.trajectory, self.covariance, tt
+        )
+
+    def parameters_in(self, a: float, b: float) -> int:
+        """Coefficients whose support overlaps (a, b) (the seed's 'parameters in the gap')."""
+        n = 0
+        for ax in self.trajectory.axes:
+            k, p = ax.knots, ax.degree
+            lo, hi = k[: ax.n_coef], k[p + 1 : p + 1 + ax.n_coef]
+            n += int(np.sum((hi > a) & (lo < b)))
+        return n
+
+
+def state_covariance(traj: SplineTrajectory, cov: FloatArray, t: FloatArray) -> FloatArray:
+    """Covariance (m, 6, 6) of world position and velocity from the coefficient
+    covariance ``cov`` (n_coef, n_coef)."""
+    m = t.shape[0]
+    g = sp.vstack([traj.world_design(t, 0), traj.world_design(t, 1)]).tocsr()
+    gp = np.asarray(g @ cov)  # (6m, n)
+    gd = g.toarray() if g.shape[0] * g.shape[1] < 5e7 else None
+    if gd is None:
+        raise EstimationError('too many output times for one covariance evaluation')
+    rows = np.concatenate([np.arange(m) * 3 + c for c in range(3)] + [])
+    del rows
+    # index of (time j, component c) in g: position rows 3j + c, velocity rows 3m + 3j + c
+    idx = np.empty((m, 6), dtype=int)
+    for c in range(3):
+        idx[:, c] = 3 * np.arange(m) + c
+        idx[:, 3 + c] = 3 * m + 3 * np.arange(m) + c
+    a = gp[idx]  # (m, 6, n)
+    b = gd[idx]  # (m, 6, n)
+    out = np.einsum('min,mjn->mij', a, b)
+    return 0.5 * (out + np.transpose(out, (0, 2, 1)))
+
+
+@dataclass(frozen=True)
+class BiasEstimate:
+    """One systematic error after the solve. ``status`` is ``estimated``, ``known``
+    (held at its declared value) or ``unobservable: <reason>`` (frozen at its prior)."""
+
+    station: str
+    name: str
+    value: float
+    sigma: float
+    prior: float
+    prior_sigma: float
+    status: str
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """Outcome of one window, the way ``scipy.optimize`` reports.
+
+    Attributes
+    ----------
+    success : bool
+    message : str
+    t0, t1 : float
+        Window span [s].
+    targets : mapping of target id to TargetSolution
+    iterations, halvings : int
+    cost : float
+        Final ``|r|^2`` (whitened).
+    chi2_dof : float
+        ``cost / (rows - parameters)``.
+    condition : float
+        Condition number of the Jacobi-scaled normal matrix.
+    n_parameters : int
+    used, rejected : Counter
+        Rows used per station id; rejected rows per ``(station id, reason)``.
+    residuals : mapping of station id to (time (n,), field names, whitened residual (n, k))
+    knot_time, solve_time : float
+        Wall time [s] of knot selection and of the Gauss-Newton solve.
+    """
+
+    success: bool
+    message: str
+    t0: float
+    t1: float
+    targets: Mapping[int, TargetSolution]
+    iterations: int
+    halvings: int
+    cost: float
+    chi2_dof: float
+    condition: float
+    n_parameters: int
+    used: Counter[str]
+    rejected: Counter[tuple[str, str]]
+    residuals: Mapping[str, tuple[FloatArray, tuple[str, ...], FloatArray]]
+    knot_time: float
+    solve_time: float
+    covariance: FloatArray = field(repr=False, default_factory=lambda: np.zeros((0, 0)))
+    biases: tuple[BiasEstimate, ...] = ()
