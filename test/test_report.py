@@ -21,8 +21,8 @@ from orbit_tracking.core.metrics import hermite_states
 from orbit_tracking.core.sim.scenario import load_scenario
 from orbit_tracking.core.sim.simulator import simulate
 from orbit_tracking.tools.cli import main as cli_main
-from orbit_tracking.tools.report import HTML_FIGURES, _post_fit
-from orbit_tracking.tools.report_inputs import report_context
+from orbit_tracking.tools.report import HTML_FIGURES, report_context
+from orbit_tracking.tools.report.figures import _post_fit
 
 EPOCH_NS = 1_700_000_000 * 1_000_000_000
 SIGMA = np.array([0.5, 0.5, 0.5, 0.02, 0.02, 0.02])

@@ -2,24 +2,47 @@
 on-board telemetry and triangulated fixes, cut to a time window.
 
 The live node builds an :class:`Observations` from its buffers, the offline tool from a
-bag, the benchmark straight from a :class:`~orbit_tracking.core.sim.simulator.SimulationResult`.
+bag, the benchmarks straight from a simulation run (:meth:`Observations.from_simulation`
+takes anything with its three tables, so this module does not depend on the simulator).
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 from orbit_tracking.core.data.tables import MeasurementTable, StationStates, TargetStates
 from orbit_tracking.core.models.measurements import StationPose
-from orbit_tracking.core.sim.simulator import SimulationResult
 
-__all__ = ['FixSeries', 'Observations', 'StationObservations', 'pose_at', 'states_pose']
+__all__ = [
+    'FixSeries',
+    'Observations',
+    'RecordedTables',
+    'StationObservations',
+    'pose_at',
+    'states_pose',
+]
 
 FloatArray = NDArray[np.float64]
+
+
+class RecordedTables(Protocol):
+    """What :meth:`Observations.from_simulation` reads: the measurement table and the
+    states of every station, and the telemetry of every target (a
+    :class:`~orbit_tracking.core.sim.simulator.SimulationResult` is one)."""
+
+    @property
+    def measurements(self) -> Mapping[str, MeasurementTable]: ...
+
+    @property
+    def station_states(self) -> Mapping[str, StationStates]: ...
+
+    @property
+    def telemetry(self) -> Mapping[int, TargetStates]: ...
 
 
 @dataclass(frozen=True)
@@ -121,7 +144,7 @@ class Observations:
 
     @classmethod
     def from_simulation(
-        cls, result: SimulationResult, fixes: Mapping[int, FixSeries] | None = None
+        cls, result: RecordedTables, fixes: Mapping[int, FixSeries] | None = None
     ) -> Observations:
         """Observations of a simulation run (station poses interpolated per row)."""
         stations = []
@@ -141,7 +164,7 @@ class _Poses:
 
 
 def states_pose(states: StationStates) -> _Poses:
-    """Pose samples of a :class:`~orbit_tracking.core.sim.simulator.StationStates`."""
+    """Pose samples of a :class:`~orbit_tracking.core.data.tables.StationStates`."""
     return _Poses(np.asarray(states.time), states.pose(), bool(states.moving))
 
 

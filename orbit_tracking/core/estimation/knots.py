@@ -17,6 +17,10 @@
    dropped. ``r`` and ``v`` here are the densified fit, not the raw rough samples, so
    the noise of the rough trajectory is not what the knots follow; the tolerances are
    widened to ``3 sigma`` of that fit where it is less certain than ``delta``.
+
+The module is longer than the project's ~600-line guide on purpose: it is seed 000's knot
+method, and its four steps share the rough trajectory's frame, noise level and tolerances;
+kept together they read top to bottom like the seed's section 3.
 """
 
 from __future__ import annotations

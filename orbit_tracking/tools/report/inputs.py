@@ -1,8 +1,8 @@
 """Truth and measurements for ``orbit-tracking report``: read from the bag an output
 folder was estimated from, or simulated again from the scenario it names.
 
-The report itself (:mod:`orbit_tracking.tools.report`) is ROS-free; this module turns bag
-contents into its :class:`~orbit_tracking.tools.report.RunContext`.
+The rest of the report (:mod:`orbit_tracking.tools.report`) is ROS-free; this module turns
+bag contents into its :class:`~orbit_tracking.tools.report.folder.RunContext`.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from orbit_tracking.core.errors import ConfigError
 from orbit_tracking.core.sim.scenario import load_scenario
 from orbit_tracking.ros.bag import read_bag
 from orbit_tracking.tools.bag_inputs import BagContext, read_for_estimation
-from orbit_tracking.tools.report import RunContext, context_from_scenario
+from orbit_tracking.tools.report.folder import RunContext, context_from_scenario
 
 __all__ = ['context_from_bag', 'find_input_bag', 'output_world_frame', 'report_context']
 

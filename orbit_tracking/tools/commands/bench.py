@@ -1,0 +1,122 @@
+"""``orbit-tracking bench``: the benchmark suites (triangulation, estimator, biases and
+the live nodes over DDS), printed as tables and optionally written into
+docs/BENCHMARKS.md."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+
+__all__ = ['add_bench']
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    import platform
+
+    from orbit_tracking.tools.bench.triangulation import (
+        TRIANGULATION_SCENARIOS,
+        bench_triangulation,
+        markdown_table,
+        write_docs,
+    )
+
+    def footer(t0: float) -> str:
+        return (
+            f'\n\nMeasured by `orbit-tracking bench --suite {args.suite} --seeds {args.seeds}` '
+            f'on {platform.machine()} ({platform.python_implementation()} '
+            f'{platform.python_version()}, {os.cpu_count()} cores) in '
+            f'{time.monotonic() - t0:.0f} s.'
+        )
+
+    if args.suite in ('triangulation', 'all'):
+        t0 = time.monotonic()
+        rows = bench_triangulation(
+            args.scenarios or TRIANGULATION_SCENARIOS, args.seeds, not args.quiet
+        )
+        text = markdown_table(rows, args.seeds) + footer(t0)
+        print(text)
+        if args.write_docs:
+            write_docs(args.docs, 'triangulation', text)
+            print(f'updated {args.docs}')
+    if args.suite in ('estimator', 'all'):
+        from orbit_tracking.tools.bench.estimator import (
+            ESTIMATOR_SCENARIOS,
+            bench_estimator,
+            estimator_tables,
+        )
+
+        t0 = time.monotonic()
+        plots = Path(args.docs).parent / 'bench' if args.write_docs else args.plots
+        erows = bench_estimator(
+            args.scenarios or ESTIMATOR_SCENARIOS, args.seeds, not args.quiet, plots
+        )
+        text = estimator_tables(erows, args.seeds) + footer(t0)
+        if plots:
+            text += f' Error plots (seed 0): `{plots}/<scenario>_<method>.png`.'
+        print(text)
+        if args.write_docs:
+            write_docs(args.docs, 'estimator', text)
+            print(f'updated {args.docs}')
+    if args.suite in ('biases', 'all'):
+        from orbit_tracking.tools.bench.biases import BIAS_SCENARIOS, bench_biases, bias_tables
+
+        t0 = time.monotonic()
+        brows = bench_biases(args.scenarios or BIAS_SCENARIOS, args.seeds, not args.quiet)
+        text = bias_tables(brows, args.seeds) + footer(t0)
+        print(text)
+        if args.write_docs:
+            write_docs(args.docs, 'biases', text)
+            print(f'updated {args.docs}')
+    if args.suite == 'dds':  # live nodes over DDS; not part of 'all'
+        from orbit_tracking.tools.bench.dds import (
+            DDS_RATES,
+            DDS_SCENARIO,
+            DDS_WINDOWS,
+            bench_dds,
+            dds_table,
+        )
+
+        t0 = time.monotonic()
+        scenario = args.scenarios[0] if args.scenarios else DDS_SCENARIO
+        rates = args.rates or DDS_RATES
+        drows = bench_dds(scenario, rates, args.span, progress=not args.quiet)
+        command = (
+            f'orbit-tracking bench --suite dds --rates {" ".join(f"{r:g}" for r in rates)} '
+            f'--span {args.span:g}'
+        )
+        text = dds_table(drows, scenario, args.span, DDS_WINDOWS, time.monotonic() - t0, command)
+        print(text)
+        if args.write_docs:
+            write_docs(args.docs, 'dds', text)
+            print(f'updated {args.docs}')
+    return 0
+
+
+def add_bench(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    """Add the ``bench`` subcommand to ``sub``."""
+    s = sub.add_parser('bench', help='accuracy against truth and the CRB, and wall time')
+    s.add_argument('--scenarios', nargs='*', help='scenario names (default: the reference set)')
+    s.add_argument('--seeds', type=int, default=3, help='noise seeds per scenario')
+    s.add_argument('--write-docs', action='store_true', help='update docs/BENCHMARKS.md')
+    s.add_argument('--docs', default='docs/BENCHMARKS.md', help='file updated by --write-docs')
+    s.add_argument('--quiet', action='store_true', help='no progress lines')
+    s.add_argument(
+        '--suite',
+        choices=('triangulation', 'estimator', 'biases', 'all', 'dds'),
+        default='all',
+        help='which benchmark to run (default: all; dds, the live nodes over DDS, only '
+        'when asked)',
+    )
+    s.add_argument(
+        '--rates',
+        type=float,
+        nargs='+',
+        help='dds: offered measurement rates [measurements/s] (default 250 500 1000 2000 4000)',
+    )
+    s.add_argument(
+        '--span', type=float, default=30.0, help='dds: data seconds published at each rate'
+    )
+    s.add_argument('--plots', type=Path, help='folder for the estimator error plots')
+    s.set_defaults(func=_cmd_bench)

@@ -1,0 +1,203 @@
+"""The offline commands of ``orbit-tracking``: ``triangulate`` and ``estimate`` (a bag
+through the nodes' pipelines, no DDS) and ``report`` (report.html of an output folder)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from orbit_tracking.core.errors import OrbitTrackingError
+
+__all__ = ['add_triangulate', 'add_estimate', 'add_report']
+
+
+def _cmd_triangulate(args: argparse.Namespace) -> int:
+    from orbit_tracking.core.triangulation.alignment import AlignConfig
+    from orbit_tracking.core.triangulation.intersection import Gates
+    from orbit_tracking.tools.triangulate import triangulate_bag
+
+    align = AlignConfig(
+        period=args.period,
+        max_gap_factor=args.max_gap_factor,
+        smoothing_eps=args.smoothing_eps if args.smoothing_eps > 0 else None,
+    )
+    gates = Gates(args.min_angle, args.max_gdop, args.miss_probability)
+    t0 = time.monotonic()
+    report = triangulate_bag(args.bag, args.out, align, gates, args.target_id, not args.quiet)
+    for line in report.lines():
+        print(line)
+    print(f'wrote {", ".join(str(f) for f in report.files)} ({time.monotonic() - t0:.1f} s)')
+    return 0
+
+
+def _cmd_estimate(args: argparse.Namespace) -> int:
+    import shutil
+
+    from orbit_tracking.core.estimation.bias_files import load_bias_declaration
+    from orbit_tracking.core.estimation.config import EstimatorConfig
+    from orbit_tracking.core.estimation.windows import WindowConfig
+    from orbit_tracking.tools.estimate import estimate_bag
+
+    try:
+        win = WindowConfig(args.window_length, args.overlap, output_step=args.output_step)
+    except ValueError as exc:
+        print(f'orbit-tracking estimate: error: {exc}', file=sys.stderr)
+        return 2
+    est = EstimatorConfig(knot_method=args.knot_method, use_telemetry=not args.no_telemetry)
+    # read the declaration before anything is deleted: a bad file is a one-line error
+    biases = load_bias_declaration(args.biases)
+    if not Path(args.bag).is_dir():
+        raise FileNotFoundError(f'no bag folder {args.bag}')
+    out = Path(args.out)
+    if out.exists() and any(out.iterdir()):
+        if not args.force:
+            raise FileExistsError(
+                f'{out} exists; pass --force to replace it or choose another --out'
+            )
+        shutil.rmtree(out)
+    t0 = time.monotonic()
+    report = estimate_bag(args.bag, out, est, win, not args.quiet, biases)
+    for line in report.lines():
+        print(line)
+    print(f'wrote {", ".join(str(f) for f in report.files)} ({time.monotonic() - t0:.1f} s)')
+    return 0
+
+
+def _cmd_report(args: argparse.Namespace) -> int:
+    from orbit_tracking.tools.report import (
+        build_html_report,
+        output_world_frame,
+        read_output_folder,
+        report_context,
+    )
+
+    run = Path(args.run)
+    if not run.is_dir():
+        raise FileNotFoundError(f'no folder {run}')
+    est = next((d for d in (run, run / 'estimate') if (d / 'trajectory.csv').is_file()), None)
+    if est is None:
+        raise FileNotFoundError(
+            f'{run} has no trajectory.csv (write one with orbit-tracking estimate BAG --out '
+            f'{run}, or orbit-tracking demo --out {run})'
+        )
+    try:
+        folder = read_output_folder(est)
+    except ValueError as exc:
+        raise OrbitTrackingError(str(exc)) from exc
+    ctx, notes = report_context(est, folder.summary, args.bag, args.scenario)
+    for line in notes:
+        print(line)
+    path = build_html_report(folder, args.out, ctx, notes, output_world_frame(est))
+    print(f'wrote {path}')
+    return 0
+
+
+def add_triangulate(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    """Add the ``triangulate`` subcommand to ``sub``."""
+    s = sub.add_parser('triangulate', help='intersect the lines of sight of a bag into fixes.csv')
+    s.add_argument('bag', help='rosbag2 folder with stations/<id>/measurements and state')
+    s.add_argument('--out', required=True, help='output folder (fixes.csv, bag/, summary.yaml)')
+    s.add_argument(
+        '--period',
+        type=float,
+        default=0.0,
+        help='fix epoch spacing [s] (0: smallest sampling interval)',
+    )
+    s.add_argument(
+        '--max-gap-factor',
+        type=float,
+        default=2.5,
+        help='largest interpolation gap in sampling intervals',
+    )
+    s.add_argument(
+        '--smoothing-eps',
+        type=float,
+        default=0.0,
+        help='seed 003 low-pass weight (0: off; e.g. 0.95)',
+    )
+    s.add_argument(
+        '--min-angle', type=float, default=1.0, help='smallest widest-intersection angle [deg]'
+    )
+    s.add_argument(
+        '--max-gdop', type=float, default=100.0, help='largest geometric dilution of precision'
+    )
+    s.add_argument(
+        '--miss-probability',
+        type=float,
+        default=0.9999,
+        help='chi-square gate on the miss distance (1: off)',
+    )
+    s.add_argument(
+        '--target-id',
+        type=int,
+        default=None,
+        help='target written to fixes.csv (default: lowest id)',
+    )
+    s.add_argument('--quiet', action='store_true', help='no progress bar')
+    s.set_defaults(func=_cmd_triangulate)
+
+
+def add_estimate(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    """Add the ``estimate`` subcommand to ``sub``."""
+    s = sub.add_parser('estimate', help='estimate the trajectory of a bag in sliding windows')
+    s.add_argument('bag', help='rosbag2 folder with stations/<id>/measurements and state')
+    s.add_argument(
+        '--out', required=True, help='output folder (trajectory.csv, bag/, summary.yaml)'
+    )
+    s.add_argument('--window-length', type=float, default=60.0, help='window length [s]')
+    s.add_argument(
+        '--overlap', type=float, default=20.0, help='overlap of consecutive windows [s]'
+    )
+    s.add_argument(
+        '--output-step', type=float, default=0.1, help='spacing of the output states [s]'
+    )
+    s.add_argument(
+        '--no-telemetry',
+        action='store_true',
+        help='do not fuse telemetry as measurements (it still places the knots)',
+    )
+    s.add_argument(
+        '--knot-method',
+        choices=('sparse', 'dynamics', 'uniform', 'dense', 'polynomial'),
+        default='sparse',
+        help="knot placement: the seed's sparse selection (default) or a baseline",
+    )
+    s.add_argument(
+        '--biases',
+        metavar='FILE|auto',
+        default='',
+        help='estimate station biases: a YAML declaration (config/biases_example.yaml) or '
+        '"auto" (every measured field of every station, weak priors); writes biases.csv',
+    )
+    s.add_argument('--force', action='store_true', help='replace an existing output folder')
+    s.add_argument('--quiet', action='store_true', help='no progress bars')
+    s.set_defaults(func=_cmd_estimate)
+
+
+def add_report(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    """Add the ``report`` subcommand to ``sub``."""
+    s = sub.add_parser(
+        'report',
+        help='report.html of an estimate or demo output folder',
+    )
+    s.add_argument(
+        'run',
+        help='folder written by estimate or demo (trajectory.csv, summary.yaml, ...), or one '
+        'with such a folder as estimate/',
+    )
+    s.add_argument(
+        '--out', default=None, help='folder for report.html and its PNGs (default: the folder)'
+    )
+    s.add_argument(
+        '--bag',
+        default=None,
+        help='the estimated bag, for residuals and truth (default: the one summary.yaml names)',
+    )
+    s.add_argument(
+        '--scenario',
+        default=None,
+        help='scenario name or YAML path to simulate again for truth and measurements',
+    )
+    s.set_defaults(func=_cmd_report)
