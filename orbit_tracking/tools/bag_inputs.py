@@ -19,10 +19,7 @@ from orbit_tracking.core.data.buffer import ObservationBuffer
 from orbit_tracking.core.data.tables import TargetStates
 from orbit_tracking.core.errors import ConfigError, MeasurementError
 from orbit_tracking.core.sim.scenario import load_scenario, truth_biases
-from orbit_tracking.core.triangulation.pipeline import (
-    TimedFix,
-    TriangulationPipeline,
-)
+from orbit_tracking.core.triangulation.pipeline import TimedFix, TriangulationPipeline
 from orbit_tracking.ros.bag import bag_custom_data, read_bag
 from orbit_tracking.ros.conversions import (
     TimeBase,

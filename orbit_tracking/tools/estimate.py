@@ -36,11 +36,7 @@ from orbit_tracking.core.estimation.windows import (
     write_trajectory_csv,
 )
 from orbit_tracking.core.triangulation.intersection import Gates
-from orbit_tracking.core.triangulation.pipeline import (
-    TimedFix,
-    TriangulationPipeline,
-    fix_series,
-)
+from orbit_tracking.core.triangulation.pipeline import TimedFix, TriangulationPipeline, fix_series
 from orbit_tracking.ros import qos
 from orbit_tracking.ros.bag import BagWriter
 from orbit_tracking.ros.conversions import (

@@ -11,9 +11,7 @@ import numpy as np
 
 from orbit_tracking.core.data.tables import TargetStates
 from orbit_tracking.core.estimation.results import BiasEstimate
-from orbit_tracking.core.estimation.windows import (
-    Span,
-)
+from orbit_tracking.core.estimation.windows import Span
 from orbit_tracking.core.metrics import hermite_states, nees
 from orbit_tracking.core.models.systematic import ESTIMABLE_BIASES
 from orbit_tracking.tools.bag_inputs import BagContext

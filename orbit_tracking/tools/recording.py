@@ -13,14 +13,9 @@ import numpy as np
 import yaml
 
 from orbit_tracking.core.errors import OrbitTrackingError
-from orbit_tracking.core.estimation.bias_files import (
-    write_biases_by_window_csv,
-    write_biases_csv,
-)
+from orbit_tracking.core.estimation.bias_files import write_biases_by_window_csv, write_biases_csv
 from orbit_tracking.core.estimation.results import BiasEstimate
-from orbit_tracking.core.estimation.windows import (
-    write_trajectory_csv,
-)
+from orbit_tracking.core.estimation.windows import write_trajectory_csv
 from orbit_tracking.core.time import parse_stamp
 from orbit_tracking.ros.bag import read_bag
 from orbit_tracking.ros.conversions import (

@@ -22,10 +22,7 @@ from orbit_tracking.core.triangulation.pipeline import (
 )
 from orbit_tracking.ros import qos
 from orbit_tracking.ros.bag import BagWriter
-from orbit_tracking.ros.conversions import (
-    TimeBase,
-    fix_to_msg,
-)
+from orbit_tracking.ros.conversions import TimeBase, fix_to_msg
 from orbit_tracking.tools.bag_inputs import BagContext, bag_inputs, feed_pipeline, truth_states
 
 __all__ = ['TriangulationReport', 'triangulate_bag']

@@ -8,12 +8,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from orbit_tracking.core.errors import OrbitTrackingError
-from orbit_tracking.core.estimation.coverage import (
-    CoverageConfig,
-)
-from orbit_tracking.core.estimation.knots import (
-    KnotConfig,
-)
+from orbit_tracking.core.estimation.coverage import CoverageConfig
+from orbit_tracking.core.estimation.knots import KnotConfig
 from orbit_tracking.core.models.systematic import BiasParameter
 
 __all__ = ['KNOT_METHODS', 'EstimationError', 'EstimatorConfig', 'Segment']

@@ -40,10 +40,7 @@ from numpy.typing import NDArray
 
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.estimation.config import EstimationError, EstimatorConfig, Segment
-from orbit_tracking.core.estimation.coverage import (
-    find_incomplete_segments,
-    merge_segments,
-)
+from orbit_tracking.core.estimation.coverage import find_incomplete_segments, merge_segments
 from orbit_tracking.core.estimation.gauss_newton import covariance, solve
 from orbit_tracking.core.estimation.knot_refinement import (
     choose_knots_safely,
@@ -51,11 +48,7 @@ from orbit_tracking.core.estimation.knot_refinement import (
     rebuild,
     refine_knots,
 )
-from orbit_tracking.core.estimation.knots import (
-    KnotSelection,
-    RoughTrajectory,
-    rough_trajectory,
-)
+from orbit_tracking.core.estimation.knots import KnotSelection, RoughTrajectory, rough_trajectory
 from orbit_tracking.core.estimation.observability import bias_estimates, freeze_unobservable
 from orbit_tracking.core.estimation.problem import Problem
 from orbit_tracking.core.estimation.results import Estimate, TargetSolution, state_covariance

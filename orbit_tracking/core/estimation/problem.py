@@ -16,9 +16,7 @@ from numpy.typing import NDArray
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.estimation.bspline import SplineAxis, SplineTrajectory
 from orbit_tracking.core.estimation.config import EstimatorConfig
-from orbit_tracking.core.estimation.knots import (
-    uniform_knots,
-)
+from orbit_tracking.core.estimation.knots import uniform_knots
 from orbit_tracking.core.models.measurements import predict, residual
 from orbit_tracking.core.models.systematic import CLOCK, BiasModel
 

@@ -14,9 +14,7 @@ from numpy.typing import NDArray
 
 from orbit_tracking.core.estimation.bspline import SplineAxis, SplineTrajectory
 from orbit_tracking.core.estimation.config import EstimationError, Segment
-from orbit_tracking.core.estimation.knots import (
-    KnotSelection,
-)
+from orbit_tracking.core.estimation.knots import KnotSelection
 
 __all__ = ['BiasEstimate', 'Estimate', 'TargetSolution', 'state_covariance']
 
