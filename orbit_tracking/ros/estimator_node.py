@@ -471,8 +471,7 @@ class EstimatorNode(StationInputs):
         self._remember(span, est, dt, withheld)
         used = sum(v for k, v in est.used.items() if not k.startswith('telemetry_'))
         rejected = sum(est.rejected.values())
-        log = self.get_logger().info if est.success else self.get_logger().warning
-        log(
+        text = (
             f'window [{t0:.2f}, {t1:.2f}] s (stamps {tb.to_ns(t0) * 1e-9:.2f}-'
             f'{tb.to_ns(t1) * 1e-9:.2f}): {est.message}; {est.iterations} GN iterations, '
             f'chi2/dof {est.chi2_dof:.3f}, {used} measured values used, {rejected} rejected'
@@ -480,6 +479,11 @@ class EstimatorNode(StationInputs):
             + f', {est.n_parameters} parameters; solved in {dt:.2f} s '
             f'(knots {est.knot_time:.2f} s, Gauss-Newton {est.solve_time:.2f} s)'
         )
+        # one severity per call site: rclpy refuses a call site whose severity changes
+        if est.success:
+            self.get_logger().info(text)
+        else:
+            self.get_logger().warning(text)
         return True
 
     def _failed(self, span: Span, wall: float, reason: str, withheld: Counter[str]) -> bool:
