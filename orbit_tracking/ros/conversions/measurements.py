@@ -12,13 +12,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from builtin_interfaces.msg import Time
 from numpy.typing import NDArray
-from sensor_msgs.msg import PointCloud2, PointField
+from sensor_msgs.msg import PointCloud2
 
 from orbit_tracking.core.errors import MeasurementError
 from orbit_tracking.core.models.measurements import FIELDS, sigma_field
-from orbit_tracking.ros.conversions._common import _FLOAT64, _UINT32, FloatArray, _dt
+from orbit_tracking.ros.conversions._common import _FLOAT64, _UINT32, FloatArray, _pack_cloud
 from orbit_tracking.ros.conversions.time import TimeBase
 
 __all__ = ['MeasurementBatch', 'cloud_to_measurements', 'measurements_to_cloud']
@@ -109,22 +108,7 @@ def measurements_to_cloud(
     if batched:
         arr['time_offset'] = (ns - ns[0]) * 1e-9
     arr['target_id'] = target_id
-    msg = PointCloud2()
-    first_ns = int(ns[0])
-    msg.header.stamp = Time(sec=first_ns // 1_000_000_000, nanosec=first_ns % 1_000_000_000)
-    msg.header.frame_id = station_id
-    msg.height = 1
-    msg.width = n
-    msg.fields = [
-        PointField(name=name, offset=int(dtype.fields[name][1]), datatype=_dt(name), count=1)
-        for name in dtype.names
-    ]
-    msg.is_bigendian = False
-    msg.point_step = dtype.itemsize
-    msg.row_step = dtype.itemsize * n
-    msg.data = arr.tobytes()
-    msg.is_dense = True
-    return msg
+    return _pack_cloud(arr, int(ns[0]), station_id)
 
 
 def cloud_to_measurements(msg: PointCloud2, timebase: TimeBase) -> MeasurementBatch:

@@ -11,14 +11,13 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
-from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from numpy.typing import ArrayLike, NDArray
-from sensor_msgs.msg import PointCloud2, PointField
+from sensor_msgs.msg import PointCloud2
 
 from orbit_tracking.core.estimation.residuals import ResidualStats
 from orbit_tracking.core.time import format_stamp, parse_stamp
-from orbit_tracking.ros.conversions._common import FloatArray, _dt
+from orbit_tracking.ros.conversions._common import FloatArray, _dt, _pack_cloud
 from orbit_tracking.ros.conversions.diagnostics import diagnostic_array, diagnostic_status
 from orbit_tracking.ros.conversions.time import TimeBase
 
@@ -150,21 +149,7 @@ def window_states_to_cloud(
     for k, name in enumerate(WINDOW_STATE_FIELDS[7:]):
         arr[name] = upper[:, k]
     arr['target_id'] = np.broadcast_to(np.asarray(target_id, dtype=np.uint32), (m,))
-    msg = PointCloud2()
-    msg.header.stamp = Time(sec=t0_ns // 1_000_000_000, nanosec=t0_ns % 1_000_000_000)
-    msg.header.frame_id = world_frame
-    msg.height = 1
-    msg.width = m
-    msg.fields = [
-        PointField(name=name, offset=int(dtype.fields[name][1]), datatype=_dt(name), count=1)
-        for name in dtype.names
-    ]
-    msg.is_bigendian = False
-    msg.point_step = dtype.itemsize
-    msg.row_step = dtype.itemsize * m
-    msg.data = arr.tobytes()
-    msg.is_dense = True
-    return msg
+    return _pack_cloud(arr, t0_ns, world_frame)
 
 
 def cloud_to_window_states(msg: PointCloud2, timebase: TimeBase) -> WindowStates:
