@@ -18,6 +18,7 @@ import sys
 import time
 import uuid
 from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -201,3 +202,17 @@ def ros_namespace() -> str:
 def node_command_fixture() -> Callable[..., list[str]]:
     """:func:`node_command` as a fixture: ``node_command('station_sim', scenario=...)``."""
     return node_command
+
+
+@contextmanager
+def default_context(**params: object) -> Iterator[None]:
+    """rclpy's default context with node parameters, for a node built in this process and
+    fed by calling its callbacks (no DDS traffic)."""
+    import rclpy
+
+    args = ['--ros-args'] + [a for k, v in params.items() for a in ('-p', f'{k}:={v}')]
+    rclpy.init(args=args)
+    try:
+        yield
+    finally:
+        rclpy.try_shutdown()

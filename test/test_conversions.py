@@ -7,6 +7,8 @@ not with the module under test.
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 from builtin_interfaces.msg import Time
@@ -370,19 +372,113 @@ def test_foreign_layout_and_big_endian_data_are_decoded(endian):
     )
 
 
-def test_organised_cloud_with_row_padding_is_decoded():
-    # height 2, each row padded by 8 bytes beyond width * point_step
+def _two_point_cloud():
     layout = [('range', '<f8', 0), ('sigma_range', '<f8', 8)]
-    rows = [
-        _hand_built_cloud(layout, {'range': r, 'sigma_range': [1.0, 1.0]})
-        for r in ([1.0, 2.0], [3.0, 4.0])
-    ]
-    msg = rows[0]
-    msg.height, msg.width = 2, 2
-    msg.row_step = 2 * 16 + 8
-    msg.data = b''.join(bytes(r.data) + b'\0' * 8 for r in rows)
+    return _hand_built_cloud(layout, {'range': [1.0e5, 2.0e5], 'sigma_range': [1.0, 1.0]})
+
+
+def _padded_rows(msg):
+    msg.height, msg.width = 2, 1
+    msg.row_step = 16 + 8
+    msg.data = bytes(msg.data[:16]) + b'\0' * 8 + bytes(msg.data[16:]) + b'\0' * 8
+
+
+def _duplicate_field(msg):
+    msg.fields = [*msg.fields, PointField(name='range', offset=8, datatype=8, count=1)]
+
+
+@pytest.mark.parametrize(
+    'damage, words',
+    [
+        (_padded_rows, 'height must be 1'),
+        (lambda m: setattr(m, 'data', bytes(m.data) + b'\0' * 8), 'data holds 40 bytes'),
+        (lambda m: setattr(m, 'data', bytes(m.data)[:-1]), 'data holds 31 bytes'),
+        (lambda m: setattr(m, 'row_step', 16), 'row_step 16'),
+        (lambda m: setattr(m, 'point_step', 0), 'point_step must be > 0'),
+        (_duplicate_field, "duplicate field name(s) ['range']"),
+        (lambda m: setattr(m, 'width', 10**9), 'at most 100000'),
+        (lambda m: setattr(m.fields[1], 'offset', 12), 'beyond point_step'),
+    ],
+    ids=[
+        'padded_rows',
+        'extra_bytes',
+        'short_data',
+        'row_step',
+        'point_step',
+        'duplicate',
+        'too_many_points',
+        'field_beyond',
+    ],
+)
+def test_a_cloud_not_laid_out_as_the_contract_says_is_rejected_as_layout(damage, words):
+    msg = _two_point_cloud()
+    assert cloud_to_measurements(msg, TB).values.shape == (2, 1)
+    damage(msg)
+    with pytest.raises(MeasurementError, match=re.escape(words)) as info:
+        cloud_to_measurements(msg, TB)
+    assert info.value.reason == 'layout'
+
+
+@pytest.mark.parametrize(
+    'sec, nanosec', [(5, 1_000_000_000), (5, 4_294_967_295), (-1, 0)], ids=['1e9', 'max', 'neg']
+)
+def test_an_invalid_stamp_rejects_the_message(sec, nanosec):
+    msg = _two_point_cloud()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
+    with pytest.raises(MeasurementError) as info:
+        cloud_to_measurements(msg, TB)
+    assert info.value.reason == 'stamp'
+
+
+def test_a_message_without_points_is_rejected():
+    msg = _two_point_cloud()
+    msg.width, msg.row_step, msg.data = 0, 0, b''
+    with pytest.raises(MeasurementError) as info:
+        cloud_to_measurements(msg, TB)
+    assert info.value.reason == 'no_points'
+
+
+@pytest.mark.parametrize(
+    'field, value, sigma, reason',
+    [
+        ('range', 1e300, 1.0, 'range_out_of_range'),
+        ('range', -5.0, 1.0, 'range_out_of_range'),
+        ('range', 1.0e5, 1e-300, 'sigma_range_out_of_range'),
+        ('range', 1.0e5, 1e300, 'sigma_range_out_of_range'),
+        ('range_rate', 1e12, 0.1, 'range_rate_out_of_range'),
+        ('elevation', 4.0, 1e-4, 'elevation_out_of_range'),
+        ('azimuth', 1e9, 1e-4, 'azimuth_out_of_range'),
+        ('los_alpha', 1e30, 1e-5, 'los_alpha_out_of_range'),
+    ],
+)
+def test_implausible_points_are_dropped_and_counted_by_reason(field, value, sigma, reason):
+    fields = (field,)
+    t = np.array([1.0, 1.1, 1.2])
+    good = {
+        'range': 1.0e5,
+        'range_rate': 10.0,
+        'elevation': 0.3,
+        'azimuth': 1.0,
+        'los_alpha': 0.1,
+    }[field]
+    values = np.array([[good], [value], [good]])
+    sigmas = np.array([[1e-3], [sigma], [1e-3]])
+    msg = measurements_to_cloud('s1', fields, t, np.zeros(3, np.uint32), values, sigmas, TB)
     batch = cloud_to_measurements(msg, TB)
-    np.testing.assert_array_equal(batch.values[:, 0], [1.0, 2.0, 3.0, 4.0])
+    assert batch.rejected == 1 and dict(batch.reasons) == {reason: 1}
+    np.testing.assert_allclose(batch.time, [1.0, 1.2], atol=1e-9)
+
+
+@pytest.mark.parametrize('offset', [1e18, -1e18, 1e300, np.nan, 3600.5])
+def test_a_time_offset_beyond_an_hour_drops_its_point(offset):
+    layout = [('range', '<f8', 0), ('sigma_range', '<f8', 8), ('time_offset', '<f8', 16)]
+    msg = _hand_built_cloud(
+        layout,
+        {'range': [1.0e5, 2.0e5], 'sigma_range': [1.0, 1.0], 'time_offset': [0.0, offset]},
+    )
+    batch = cloud_to_measurements(msg, TB)
+    assert batch.rejected == 1 and dict(batch.reasons) == {'time_offset_out_of_range': 1}
+    np.testing.assert_allclose(batch.time, [5.0], atol=1e-9)
 
 
 # -- Odometry: station states ------------------------------------------------------------------

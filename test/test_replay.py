@@ -9,11 +9,10 @@ import signal
 import sys
 import time
 import types
-from collections.abc import Iterator
-from contextlib import contextmanager
 
 import numpy as np
 import pytest
+from conftest import default_context
 
 from orbit_tracking.core.sim.scenario import load_scenario
 from orbit_tracking.core.sim.simulator import simulate
@@ -58,30 +57,15 @@ def _feed(node, ev, msg) -> None:
         node._on_telemetry(msg)
 
 
-@contextmanager
-def default_context(**params: object) -> Iterator[None]:
-    """rclpy's default context with node parameters, for a node built in this process and
-    fed by calling its callbacks (no DDS traffic)."""
-    import rclpy
-
-    args = ['--ros-args'] + [a for k, v in params.items() for a in ('-p', f'{k}:={v}')]
-    rclpy.init(args=args)
-    try:
-        yield
-    finally:
-        rclpy.try_shutdown()
-
-
 def test_triangulation_node_resets_once_per_loop_and_repeats_its_fixes(tmp_path):
     from orbit_tracking.ros.triangulation_node import TriangulationNode
 
     (tmp_path / 'q2.yaml').write_text(SHORT_Q2)
     events = _events(tmp_path / 'q2.yaml')
-    # a message of the first pass that arrives after the second began, on another topic
-    # (messages of different topics are not ordered with respect to each other)
-    straggler = next(
-        (ev, m) for ev, m in reversed(events) if ev.kind == 'measurement' and ev.key == 'sat09'
-    )
+
+    def stream(ev) -> str:
+        return ev.key if ev.kind == 'measurement' else f'{ev.key}/{ev.kind}'
+
     with default_context(lag=0.5):
         node = TriangulationNode()
         got: list = []
@@ -89,14 +73,31 @@ def test_triangulation_node_resets_once_per_loop_and_repeats_its_fixes(tmp_path)
         try:
             for ev, msg in events:
                 _feed(node, ev, msg)
-            _feed(node, *events[0])  # the bag again: time goes back
+            # the bag again: time goes back, one stream after another; one voice is not
+            # enough, most of the active streams must go back before the node resets
+            fed = 0
+            while node.counts['time_resets'] == 0:
+                _feed(node, *events[fed])
+                fed += 1
+            assert fed >= 2, 'the first stream to go back reset the node on its own'
             assert node.counts['time_resets'] == 1
             first_pass = len(got)  # with the held epochs, fixed at the reset
+            # a message of the first pass that arrives after the second began, on a topic
+            # that has not gone back yet (topics are not ordered with respect to each other)
+            back = {stream(ev) for ev, _ in events[:fed]}
+            straggler = next(
+                (ev, m)
+                for ev, m in reversed(events)
+                if ev.kind == 'measurement' and stream(ev) not in back
+            )
             _feed(node, *straggler)
             assert node.counts['stale_after_reset'] == 1
-            for ev, msg in events[1:]:
+            for ev, msg in events[fed:]:
                 _feed(node, ev, msg)
-            _feed(node, *events[0])  # a third pass: the second one's held epochs are fixed
+            for ev, msg in events:  # a third pass: the second one's held epochs are fixed
+                _feed(node, ev, msg)
+                if node.counts['time_resets'] == 2:
+                    break
             assert node.counts['time_resets'] == 2
         finally:
             node.destroy_node()
@@ -315,6 +316,70 @@ def test_a_stream_is_quiet_only_after_the_node_waited_for_it():
             assert node._delivering() == {}
             node._in_time('b', EPOCH_NS + 4_000_000_000)
             assert node._delivering() == {'b': 4.0}
+        finally:
+            node.destroy_node()
+
+
+def test_one_stream_going_back_alone_resets_nothing_and_loses_only_its_own_data():
+    """The attack of issue 13: a station nobody declared sends the current stamp, then a
+    stamp 1 s after the epoch. The others go on; only its held message is dropped."""
+    from orbit_tracking.ros.triangulation_node import TriangulationNode
+
+    s = 1_000_000_000
+    with default_context(silent_after=0.5):
+        node = TriangulationNode()
+        try:
+            for k in range(3):
+                for stream in ('a', 'b', 'c'):
+                    assert node._in_time(stream, EPOCH_NS + k * s // 10)
+            used: list[int] = []
+            assert node._in_time('evil', EPOCH_NS)  # a new stream: taken on its own clock
+            assert not node._in_time('evil', s, lambda: used.append(1))  # held, not used
+            for k in range(3, 6):
+                for stream in ('a', 'b', 'c'):
+                    assert node._in_time(stream, EPOCH_NS + k * s // 10)
+            assert node.counts['time_resets'] == 0 and used == []
+            time.sleep(0.6)  # 'evil' falls quiet: what it held is dropped
+            node._in_time('a', EPOCH_NS + s)
+            node._check_reset()
+            assert node.counts['time_back_unconfirmed'] == 1 and node._back == {}
+            assert node.counts['time_resets'] == 0 and node.counts['stale_after_reset'] == 0
+        finally:
+            node.destroy_node()
+
+
+def test_most_streams_going_back_reset_once_and_the_held_messages_are_used():
+    from orbit_tracking.ros.triangulation_node import TriangulationNode
+
+    s = 1_000_000_000
+    with default_context():
+        node = TriangulationNode()
+        try:
+            for stream in ('a', 'b', 'c'):
+                node._in_time(stream, EPOCH_NS + 20 * s)
+            used: list[str] = []
+            assert not node._in_time('a', EPOCH_NS, lambda: used.append('a'))
+            assert node.counts['time_resets'] == 0  # one of three: held
+            assert not node._in_time('b', EPOCH_NS, lambda: used.append('b'))
+            assert node.counts['time_resets'] == 1  # two of three: the new time line
+            assert used == ['a', 'b']
+            assert not node._in_time('c', EPOCH_NS + 19 * s)  # the old line: stale
+            assert node.counts['stale_after_reset'] == 1
+            assert node._in_time('c', EPOCH_NS)
+        finally:
+            node.destroy_node()
+
+
+def test_a_lone_stream_going_back_is_the_majority():
+    from orbit_tracking.ros.triangulation_node import TriangulationNode
+
+    with default_context():
+        node = TriangulationNode()
+        try:
+            node._in_time('a', EPOCH_NS + 20_000_000_000)
+            used: list[int] = []
+            assert not node._in_time('a', EPOCH_NS, lambda: used.append(1))
+            assert node.counts['time_resets'] == 1 and used == [1]
         finally:
             node.destroy_node()
 

@@ -533,33 +533,52 @@ def test_results_node_publishes_the_stitched_estimate_once_final_in_world_and_la
     assert int(cw['rows']) == len(_station(obs, 'cw03')) and cw['windows'] == '4'
     assert 0.7 < float(cw['range_rms']) < 1.3 and 0.7 < float(cw['range_rate_rms']) < 1.3
 
-    # bad input is counted and logged; time going back restarts the trajectory
+    # bad input is counted and logged; time going back restarts the trajectory once the
+    # next window confirms the new time line (one stray window does not)
     bad = window_states_to_cloud('earth', 0.0, grid[:5], 0, x_ref[:5], c_ref[:5], tb)
     bad.fields = bad.fields[1:]
     pubs[ns_world].publish(bad)
-    e0, w0 = ests[0], windows[0]
-    again = window_states_to_cloud(
-        'earth', e0.t0, w0.time, 0, w0.state, w0.covariance, tb, t1=e0.t1
-    )
-    pubs[ns_world].publish(again)
+
+    def cloud(k: int, shift: float = 0.0):
+        e, w = ests[k], windows[k]
+        return window_states_to_cloud(
+            'earth', e.t0 + shift, w.time + shift, 0, w.state, w.covariance, tb, t1=e.t1 + shift
+        )
+
+    n_paths = len(paths[ns_world])
+    pubs[ns_world].publish(cloud(0))
+    time.sleep(0.3)
+    rclpy_node.executor.spin_once(timeout_sec=0.05)
+    assert all(p.poses for p in paths[ns_world][n_paths:])  # held, not restarted yet
+    pubs[ns_world].publish(cloud(1))
     spin_until(
         rclpy_node,
-        lambda: paths[ns_world][-1].poses == [],
+        lambda: any(p.poses == [] for p in paths[ns_world][n_paths:]),
         5,
         'the path cleared by the restart',
     )
+    # a window far in the future, then one that continues the time line: dropped
+    pubs[ns_world].publish(cloud(0, shift=1e6))
+    pubs[ns_world].publish(cloud(2))
+
+    def counted() -> bool:
+        tr = diags['earth'][-1]['results: trajectory']
+        return (
+            tr.get('restarts') == '1'
+            and tr.get('rejected_invalid_window') == '1'
+            and tr.get('rejected_window_jump_unconfirmed') == '1'
+        )
+
     spin_until(
         rclpy_node,
-        lambda: (
-            diags['earth'][-1]['results: trajectory'].get('restarts') == '1'
-            and diags['earth'][-1]['results: trajectory'].get('rejected_invalid_window') == '1'
-        ),
+        counted,
         5,
-        lambda: f'the restart and the rejection counted; last {diags["earth"][-1:]}',
+        lambda: f'the restart and the rejections counted; last {diags["earth"][-1:]}',
     )
     assert world.poll() is None and launch.poll() is None
     log = world.errors()
     assert 'Traceback' not in log and 'Traceback' not in launch.errors()
     assert 'restarting the trajectory' in log and 'window states rejected' in log
-    assert log.count('states final') == 5
+    assert log.count('states final') == 7  # 4 windows, 2 after the restart, 1 after the jump
+    assert 'jumps from the last one' in log
     assert 'the estimator went away' in launch.errors()

@@ -110,6 +110,34 @@ def test_scheduler_starts_at_the_new_data_after_a_pause_between_passes():
     assert sched.next_window(540.0, 600.0) is None
 
 
+@pytest.mark.parametrize('huge', [1e18, -1e18, 1e300])
+def test_scheduler_cannot_stall_on_times_a_window_length_does_not_change(huge):
+    """Issue 13: a time of 1e18 s made ``t0 + length == t0`` and the node's loop handed out
+    the same window forever."""
+    cfg = WindowConfig(length=60.0, overlap=20.0, latency=2.0)
+    sched = WindowScheduler(cfg)
+    assert sched.next_window(0.0, 63.0) == (0.0, 60.0)
+    # what a caller does: ask until None; it must end, and never repeat a window
+    spans = []
+    for final in (False, True):
+        while (span := sched.next_window(huge, huge, final)) is not None:
+            assert span not in spans and len(spans) < 3
+            spans.append(span)
+    assert spans == []
+    planned = plan_windows([0.0, 10.0, huge], cfg)  # ends
+    assert all(b - a >= 30.0 for a, b in planned) and len(planned) <= 2
+    assert plan_windows([huge, huge], cfg) == []
+
+
+def test_scheduler_never_hands_out_a_window_that_does_not_move_forward():
+    sched = WindowScheduler(WindowConfig(length=60.0, overlap=20.0, latency=2.0))
+    assert sched.next_window(0.0, 63.0) == (0.0, 60.0)
+    before = (sched.last, sched.next_t0)
+    assert sched._hand_out((0.0, 60.0)) is None  # the same window again
+    assert sched._hand_out((10.0, 50.0)) is None  # ends earlier
+    assert (sched.last, sched.next_t0) == before
+
+
 def test_plan_windows_covers_the_data_with_the_configured_overlap():
     t = np.arange(0.0, 100.0, 0.05)
     spans = plan_windows(t[::-1], WindowConfig(length=30.0, overlap=10.0))

@@ -28,7 +28,15 @@ class ConfigError(OrbitTrackingError, ValueError):
 
 
 class MeasurementError(OrbitTrackingError, ValueError):
-    """Measurement data that cannot be used as given (bad field, shape or sigma)."""
+    """Measurement data that cannot be used as given (bad field, shape or sigma).
+
+    ``reason`` is a short snake_case key for counting rejections by cause (``layout``,
+    ``stamp``, ``time_offset``, ...); ``invalid`` when the raiser gave none.
+    """
+
+    def __init__(self, message: str, reason: str = 'invalid') -> None:
+        self.reason = reason
+        super().__init__(message)
 
 
 class GeometryError(OrbitTrackingError, ValueError):

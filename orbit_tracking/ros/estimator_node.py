@@ -61,16 +61,17 @@ from orbit_tracking.ros import qos
 from orbit_tracking.ros.conversions import (
     MeasurementBatch,
     StationStateSample,
+    TargetStateSample,
     TimeBase,
     biases_to_diagnostics,
     diagnostic_array,
     diagnostic_status,
     msg_to_fix,
     odometry_to_target_state,
-    stamp_ns,
     window_residuals_to_msg,
     window_states_to_cloud,
 )
+from orbit_tracking.ros.journal import EstimatorJournal
 from orbit_tracking.ros.parameters import declare
 from orbit_tracking.ros.runner import run_node
 from orbit_tracking.ros.station_inputs import StationInputs
@@ -79,6 +80,10 @@ __all__ = ['EstimatorNode', 'main']
 
 
 # every input stream is read keep-all and reliable, so nothing is overwritten unseen
+
+_MAX_WINDOWS_PER_CALL = 20
+"""Windows solved in one timer tick or service call at most, so that a flood of due
+windows (a long backlog after a stall) cannot keep the executor from its other work."""
 
 
 def _segments(flat: list[float]) -> tuple[tuple[float, float], ...]:
@@ -298,19 +303,27 @@ class EstimatorNode(StationInputs):
         self.bias_pub = self.create_publisher(DiagnosticArray, 'trajectory/biases', qos.LATCHED)
         self.diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', qos.DIAGNOSTICS)
         self.create_subscription(
-            Odometry, 'telemetry/state', self._on_telemetry, qos.MEASUREMENTS_SUB
+            Odometry,
+            'telemetry/state',
+            lambda m: self._guarded('telemetry', self._on_telemetry, m),
+            qos.MEASUREMENTS_SUB,
         )
         self.create_subscription(
-            PoseWithCovarianceStamped, 'triangulation/fixes', self._on_fix, qos.MEASUREMENTS_SUB
+            PoseWithCovarianceStamped,
+            'triangulation/fixes',
+            lambda m: self._guarded('fix', self._on_fix, m),
+            qos.MEASUREMENTS_SUB,
         )
         self.create_service(Trigger, '~/solve', self._on_solve)
         self._start_station_inputs(station_filter, self.time_reference)
-        self.create_timer(0.2, self._tick)
+        self.create_timer(0.2, lambda: self._guarded('tick', self._tick))
         self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info(
             f'estimating in {win.length:g} s windows overlapping {win.overlap:g} s '
             f'(latency {win.latency:g} s, knots {knot_method}) from {self._stations_text()}'
         )
+        # journal_dir: replays what a killed run had accepted, then journals every input
+        self.journal = EstimatorJournal(self)
 
     # -- callbacks -----------------------------------------------------------------
     def _add_pose(self, sid: str, st: StationStateSample) -> None:
@@ -335,14 +348,25 @@ class EstimatorNode(StationInputs):
         self.flushed = False
 
     def _on_telemetry(self, msg: Odometry) -> None:
-        tb = self._timebase(stamp_ns(msg.header.stamp))
-        if not self._in_time('telemetry', stamp_ns(msg.header.stamp)):
+        ns = self._stamp_of(msg, 'telemetry')
+        if ns is None:
             return
+        try:
+            s = odometry_to_target_state(msg, self._timebase(ns))
+        except ValueError as exc:
+            self._reject('invalid_telemetry', f'telemetry rejected: {exc}')
+            return
+        if self.target_id >= 0 and s.target_id != self.target_id:
+            return
+        if not self._admit({s.target_id}):
+            self._reject('too_many_targets', f'telemetry of target {s.target_id} dropped')
+            return
+        if self._in_time('telemetry', ns, lambda: self._add_telemetry(s)):
+            self._add_telemetry(s)
+
+    def _add_telemetry(self, s: TargetStateSample) -> None:
         self.last_data = time.monotonic()
         try:
-            s = odometry_to_target_state(msg, tb)
-            if self.target_id >= 0 and s.target_id != self.target_id:
-                return
             self.buffer.add_telemetry(
                 s.target_id,
                 s.time,
@@ -356,11 +380,19 @@ class EstimatorNode(StationInputs):
             self._reject('invalid_telemetry', f'telemetry rejected: {exc}')
 
     def _on_fix(self, msg: PoseWithCovarianceStamped) -> None:
-        tb = self._timebase(stamp_ns(msg.header.stamp))
-        if not self._in_time('fixes', stamp_ns(msg.header.stamp)):
+        ns = self._stamp_of(msg, 'fix')
+        if ns is None:
             return
+        try:
+            t, p, c = msg_to_fix(msg, self._timebase(ns))
+        except ValueError as exc:
+            self._reject('invalid_fix', f'fix rejected: {exc}')
+            return
+        if self._in_time('fixes', ns, lambda: self._add_fix(t, p, c)):
+            self._add_fix(t, p, c)
+
+    def _add_fix(self, t: float, p: np.ndarray, c: np.ndarray) -> None:
         self.last_data = time.monotonic()  # the tail's fixes follow the measurements
-        t, p, c = msg_to_fix(msg, tb)
         try:
             self.buffer.add_fix(max(self.target_id, 0), t, p, c)
         except ValueError as exc:
@@ -384,8 +416,8 @@ class EstimatorNode(StationInputs):
             # messages waited in the queues while we solved: that was not silence
             self.last_data = time.monotonic()
         if not self.flushed and time.monotonic() - self.last_data >= self.flush_after:
-            self.flushed = True
             spans = self._solve_due(final=True)
+            self.flushed = len(spans) < _MAX_WINDOWS_PER_CALL  # else more on the next tick
             if spans:
                 self.get_logger().info(
                     f'no measurements for {self.flush_after:g} s: solved {len(spans)} '
@@ -397,7 +429,7 @@ class EstimatorNode(StationInputs):
         stream, then start with an empty buffer and no previous window; counters carry on."""
         spans = self._solve_due(final=True)
         counts = self.buffer.counts
-        self.buffer = ObservationBuffer()
+        self.buffer = self.journal.fresh_buffer()  # the journal starts afresh too
         self.buffer.counts.update(counts)
         self.scheduler = WindowScheduler(self.win_cfg)
         self.previous = {}
@@ -412,7 +444,7 @@ class EstimatorNode(StationInputs):
             return out
         latest = self.buffer.latest_time() if final else self._horizon()
         with self._working():
-            while True:
+            while len(out) < _MAX_WINDOWS_PER_CALL:
                 start = -math.inf if self.scheduler.next_t0 is None else self.scheduler.next_t0
                 first = self.buffer.first_time(after=start)
                 span = self.scheduler.next_window(first, latest, final)
@@ -420,6 +452,10 @@ class EstimatorNode(StationInputs):
                     break
                 out.append((span, self._solve(span, self.timebase)))
                 self.buffer.prune(self.scheduler.keep_from)
+            else:  # the rest waits for the next tick: timers, services and signals go on
+                self.get_logger().warning(
+                    f'{len(out)} windows solved in one go; the rest follows on the next tick'
+                )
         return out
 
     def _horizon(self) -> float:
@@ -580,8 +616,8 @@ class EstimatorNode(StationInputs):
             self.bias_pub.publish(biases_to_diagnostics(est.biases, est.t0, est.t1, tb))
 
     # -- diagnostics ---------------------------------------------------------------
-    def _reject(self, key: str, text: str) -> None:
-        self.counts[key] += 1
+    def _reject(self, key: str, text: str, n: int = 1) -> None:
+        self.counts[key] += n
         self.get_logger().warning(f'{text} ({self.counts[key]} so far)', throttle_duration_sec=5.0)
 
     def _publish_diagnostics(self) -> None:

@@ -19,14 +19,20 @@ launch frame (``launch_site`` or the ``scenario``'s launch point).
 Example::
 
     ros2 run orbit_tracking results --ros-args -p output_frame:=launch -p scenario:=seed000_s1
+
+The module is a little over the project's ~600-line guide: about 100 lines are parameter
+declarations (each with its description and range) and about 120 the two diagnostics
+statuses; the stitching is :class:`~orbit_tracking.core.estimation.stitcher.
+TrajectoryStitcher` and the choice of windows :class:`~orbit_tracking.core.estimation.
+stitcher.TimeLine`.
 """
 
 from __future__ import annotations
 
 import math
 import time
-import traceback
 from collections import Counter
+from collections.abc import Callable
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
@@ -40,21 +46,30 @@ from std_srvs.srv import Trigger
 
 from orbit_tracking.core import frames
 from orbit_tracking.core.estimation.residuals import ResidualStats
-from orbit_tracking.core.estimation.stitcher import FinalStates, TrajectoryStitcher, split_window
+from orbit_tracking.core.estimation.stitcher import (
+    FinalStates,
+    SampledWindow,
+    TimeLine,
+    TrajectoryStitcher,
+    split_window,
+)
+from orbit_tracking.core.models.limits import TargetLimit
 from orbit_tracking.core.sim.scenario import load_scenario
 from orbit_tracking.core.time import format_stamp
 from orbit_tracking.ros import qos
 from orbit_tracking.ros.conversions import (
     TimeBase,
     WindowResiduals,
+    WindowStates,
+    checked_stamp_ns,
     cloud_to_window_states,
     diagnostic_array,
     diagnostic_status,
     msg_to_window_residuals,
-    stamp_ns,
     target_frame_id,
     target_state_to_odometry,
 )
+from orbit_tracking.ros.guard import guarded
 from orbit_tracking.ros.parameters import declare
 from orbit_tracking.ros.runner import run_node
 
@@ -64,6 +79,7 @@ OUTPUT_FRAMES = ('world', 'launch')
 """Values of the ``output_frame`` parameter."""
 
 _SAME_TIME = 1e-6  # s: two windows ending within this are the same window
+_MAX_RESIDUAL_STATIONS = 256  # residual sums kept for at most this many station ids
 _RMS_WARN = 3.0  # whitened RMS above this: the sigmas (or the model) do not fit the data
 
 
@@ -134,6 +150,17 @@ class ResultsNode(Node):
             min_value=0.1,
             max_value=86400.0,
         )
+        self.estimator_gone_grace = declare(
+            self,
+            'estimator_gone_grace',
+            10.0,
+            'Wall seconds the states held wait for an estimator whose publisher went away to '
+            'come back (a restart: its windows then hand over as usual) before they are '
+            'published; 0 = at once.',
+            read_only=True,
+            min_value=0.0,
+            max_value=86400.0,
+        )
         self.path_step = declare(
             self,
             'path_step',
@@ -143,6 +170,31 @@ class ResultsNode(Node):
             min_value=0.0,
             max_value=3600.0,
         )
+        max_targets = declare(
+            self,
+            'max_targets',
+            32,
+            'Distinct target ids published (first come; each has its own topics); states '
+            'of further ids are dropped and counted (too_many_targets).',
+            read_only=True,
+            min_value=1,
+            max_value=4096,
+        )
+        max_window_jump = declare(
+            self,
+            'max_window_jump',
+            3600.0,
+            'A window starting more than this many seconds after the last one, or ending '
+            'before it (time went back), is held until the next window confirms the new '
+            'time line (or the stream ends); one stray window cannot restart the trajectory.',
+            read_only=True,
+            min_value=1.0,
+            max_value=1e9,
+        )
+        self.timeline: TimeLine[tuple[WindowStates, list[SampledWindow], TimeBase]] = TimeLine(
+            max_window_jump
+        )
+        self.targets = TargetLimit(max_targets)
         self.launch = self._launch_frame(output_frame, scenario, site)
         self.timebase = (
             TimeBase.from_seconds(self.time_reference) if self.time_reference > 0.0 else None
@@ -157,6 +209,7 @@ class ResultsNode(Node):
         self.last_window_wall = time.monotonic()
         self.flushed = True
         self.had_publisher = False
+        self.gone_since: float | None = None  # wall time the estimator's publisher went away
         self.residual_end = -math.inf
         self.residual_totals: dict[str, ResidualStats] = {}
         self.residual_last: dict[str, WindowResiduals] = {}
@@ -171,7 +224,7 @@ class ResultsNode(Node):
         self.create_subscription(
             DiagnosticArray,
             'estimator/window_residuals',
-            self._on_residuals,
+            lambda m: self._guarded('window residuals', self._on_residuals, m),
             qos.MEASUREMENTS_SUB,
         )
         self.create_service(Trigger, '~/flush', self._on_flush)
@@ -231,34 +284,64 @@ class ResultsNode(Node):
             self.timebase = TimeBase.whole_second_of(stamp_ns_)
         return self.timebase
 
+    def _guarded(self, what: str, fn: Callable[..., object], *args: object) -> None:
+        guarded(self, self.counts, what, fn, *args)
+
     def _on_window(self, msg: PointCloud2) -> None:
         self.counts['windows_received'] += 1
-        try:
-            self._add_window(msg)
-        except Exception as exc:  # a bug in one message must not take the node down
-            self.get_logger().error(traceback.format_exc())
-            self._reject('internal_error', f'window not used: internal error {exc!r}')
+        self._guarded('window states', self._add_window, msg)
 
     def _add_window(self, msg: PointCloud2) -> None:
-        tb = self._tb(stamp_ns(msg.header.stamp))
         try:
+            tb = self._tb(checked_stamp_ns(msg.header.stamp))
             ws = cloud_to_window_states(msg, tb)
             if ws.time.size == 0:
                 raise ValueError('the window holds no state')
             if not ws.world_frame:
                 raise ValueError('empty header.frame_id (world frame)')
-            windows = split_window(ws.t0, ws.t1, ws.time, ws.target_id, ws.state, ws.covariance)
+            keep = self.targets.admit(ws.target_id)
+            if not np.all(keep):
+                self._reject(
+                    'too_many_targets',
+                    f'{int((~keep).sum())} state(s) of target ids beyond the first '
+                    f'max_targets = {self.targets.max_targets} dropped',
+                    int((~keep).sum()),
+                )
+            windows = split_window(
+                ws.t0,
+                ws.t1,
+                ws.time[keep],
+                ws.target_id[keep],
+                ws.state[keep],
+                ws.covariance[keep],
+            )
         except ValueError as exc:
             self._reject('invalid_window', f'window states rejected: {exc}')
             return
         t0, t1 = ws.t0, ws.t1
         last = self.stitcher.last_end
+        if abs(t1 - last) <= _SAME_TIME:
+            self._reject('duplicate_window', f'window ending at {self._stamp(t1)} received twice')
+            return
+        use, dropped = self.timeline.offer((t0, t1), (ws, windows, tb), last)
+        if dropped is not None:
+            self._reject(
+                'window_jump_unconfirmed',
+                f'window [{self._stamp(dropped[0].t0)}, {self._stamp(dropped[0].t1)}] jumped '
+                'away from the time line and no window followed it: dropped',
+            )
+        if not use:
+            self.get_logger().warning(
+                f'window [{self._stamp(t0)}, {self._stamp(t1)}] jumps from the last one '
+                f'(ending {self._stamp(last)}): held until the next window confirms it'
+            )
+        for item in use:
+            self._use_window(*item)
+
+    def _use_window(self, ws: WindowStates, windows: list[SampledWindow], tb: TimeBase) -> None:
+        t0, t1 = ws.t0, ws.t1
+        last = self.stitcher.last_end
         if t1 <= last + _SAME_TIME:
-            if abs(t1 - last) <= _SAME_TIME:
-                self._reject(
-                    'duplicate_window', f'window ending at {self._stamp(t1)} received twice'
-                )
-                return
             self._restart(
                 f'time went back: window [{self._stamp(t0)}, {self._stamp(t1)}] ends before '
                 f'the previous one ({self._stamp(last)})'
@@ -297,6 +380,9 @@ class ResultsNode(Node):
         )
 
     def _flush(self, why: str) -> int:
+        held = self.timeline.release()  # the stream ended on it: nothing will confirm it
+        if held is not None:
+            self._use_window(*held)
         self.flushed = True
         if self.timebase is None:
             return 0
@@ -321,15 +407,36 @@ class ResultsNode(Node):
         self.counts['restarts'] += 1
 
     def _tick(self) -> None:
-        n = self.count_publishers('estimator/window_states')
-        gone = self.had_publisher and n == 0
-        self.had_publisher = n > 0
+        now = time.monotonic()
+        self._watch_estimator(now)
         if self.flushed:
             return
-        if gone:
-            self._flush('the estimator went away')
-        elif time.monotonic() - self.last_window_wall >= self.flush_after:
+        if self.gone_since is not None and now - self.gone_since >= self.estimator_gone_grace:
+            self._flush(f'the estimator went away {now - self.gone_since:.1f} s ago')
+        elif now - self.last_window_wall >= self.flush_after:
             self._flush(f'no window for {self.flush_after:g} s')
+
+    def _watch_estimator(self, now: float) -> None:
+        """Notice the estimator's publisher going away and coming back (a restart): the
+        states held wait ``estimator_gone_grace`` seconds for it, so that its next window
+        hands over from the last one instead of meeting states already published."""
+        n = self.count_publishers('estimator/window_states')
+        if n > 0:
+            if self.gone_since is not None:
+                self.get_logger().info(
+                    f'the estimator is back after {now - self.gone_since:.1f} s'
+                    + ('' if self.flushed else f'; {self.stitcher.held()} states still held')
+                )
+            self.gone_since = None
+            self.had_publisher = True
+        elif self.had_publisher and self.gone_since is None:
+            self.gone_since = now
+            self.counts['estimator_gone'] += 1
+            if not self.flushed:
+                self.get_logger().info(
+                    f'the estimator went away: holding {self.stitcher.held()} states up to '
+                    f'{self.estimator_gone_grace:g} s for it to come back'
+                )
 
     def _on_flush(self, _req: Trigger.Request, resp: Trigger.Response) -> Trigger.Response:
         n = self._flush('flush requested')
@@ -404,9 +511,13 @@ class ResultsNode(Node):
 
     # -- residuals -----------------------------------------------------------------
     def _on_residuals(self, msg: DiagnosticArray) -> None:
-        tb = self._tb(stamp_ns(msg.header.stamp))
         try:
+            tb = self._tb(checked_stamp_ns(msg.header.stamp))
             items = msg_to_window_residuals(msg, tb)
+            if len(set(self.residual_totals) | {it.stats.station for it in items}) > (
+                _MAX_RESIDUAL_STATIONS
+            ):
+                raise ValueError(f'more than {_MAX_RESIDUAL_STATIONS} stations')
         except ValueError as exc:
             self._reject('invalid_residuals', f'window residuals rejected: {exc}')
             return
@@ -438,8 +549,8 @@ class ResultsNode(Node):
             return str(t)
         return format_stamp(self.timebase.ref_ns if self.timebase else 0, t)
 
-    def _reject(self, key: str, text: str) -> None:
-        self.counts[key] += 1
+    def _reject(self, key: str, text: str, n: int = 1) -> None:
+        self.counts[key] += n
         self.get_logger().warning(f'{text} ({self.counts[key]} so far)', throttle_duration_sec=5.0)
 
     def _publish_diagnostics(self) -> None:
@@ -456,6 +567,8 @@ class ResultsNode(Node):
                 'invalid_residuals',
                 'duplicate_residuals',
                 'internal_error',
+                'too_many_targets',
+                'window_jump_unconfirmed',
             )
         }
         main = self._path_target()
@@ -469,6 +582,7 @@ class ResultsNode(Node):
             **{f'rejected_{k}': v for k, v in rejected.items()},
             'flushes': c['flushes'],
             'restarts': c['restarts'],
+            'estimator_gone': c['estimator_gone'],
             'last_window_start': ''
             if self.last_window is None
             else self._stamp(self.last_window[0]),

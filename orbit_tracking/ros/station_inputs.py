@@ -9,12 +9,26 @@ base and world frame.
 
 It also watches time: a stamp more than ``time_reset_tolerance`` seconds older than the
 newest one of the same stream (a station's measurements, a moving station's states, or a
-stream the node adds) means the source started again (a bag replayed in a loop, a
-restarted simulator). The node then resets once (``_on_time_reset``: publish what it holds,
-clear buffers and windows), logs one line and counts ``time_resets``; fixed-station states
-are given back to it. The other streams join the new time line as their stamps go back
-too; until then what they still deliver from the old one is dropped
-(``stale_after_reset``).
+stream the node adds) may mean the source started again (a bag replayed in a loop, a
+restarted simulator). One voice is not evidence: a stream that goes back is *held* (its
+messages kept, unused) until more than half of the active streams (those heard within
+``silent_after`` plus those held) have gone back too; then the node resets once
+(``_on_time_reset``: publish what it holds, clear buffers and windows), logs one line,
+counts ``time_resets`` and processes the held messages on the new time line; fixed-station
+states are given back to it. A lone stream that goes back while the others go on (a broken
+clock, a hostile publisher) only loses its own data: when it returns to the common time
+line, or holds more than ``_MAX_HELD`` messages, what it held is dropped and counted
+(``time_back_unconfirmed``). With a single active stream, its going back is the majority.
+After a reset, the other streams join the new time line as their stamps go back too; until
+then what they still deliver from the old one is dropped (``stale_after_reset``).
+
+Every message is checked at the boundary (stamp, layout, plausible values: see
+:func:`~orbit_tracking.ros.conversions.cloud_to_measurements`); rejections are counted by
+reason (``invalid_messages_<reason>``, ``rejected_points_<reason>``). At most
+``max_targets`` distinct target ids are taken (first come); points of further ids are
+dropped (``too_many_targets``), so a flood of ids cannot grow the node without bound. No
+callback can take the node down: an unexpected exception is logged with its traceback and
+counted (``internal_error``).
 
 And it tells a late stream from a quiet one (:meth:`StationInputs._delivering`). Topics
 are read one message at a time each, so while the node is busy (a window solve) one
@@ -30,30 +44,37 @@ from __future__ import annotations
 import re
 import time
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from dataclasses import replace
 from typing import Any
 
+import numpy as np
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 
 from orbit_tracking.core.errors import MeasurementError
+from orbit_tracking.core.models.limits import TargetLimit
 from orbit_tracking.core.time import format_stamp
 from orbit_tracking.ros import qos
 from orbit_tracking.ros.conversions import (
     MeasurementBatch,
     StationStateSample,
     TimeBase,
+    checked_stamp_ns,
     cloud_to_measurements,
     odometry_to_station_state,
-    stamp_ns,
 )
+from orbit_tracking.ros.guard import guarded
 from orbit_tracking.ros.parameters import declare
 
 __all__ = ['StationInputs']
 
 _STATION_TOPIC = re.compile(r'^/stations/([A-Za-z][A-Za-z0-9_]*)/measurements$')
+
+_MAX_HELD = 2000
+"""Messages a stream that went back may hold while the node waits for the others."""
 
 
 class StationInputs(Node):
@@ -92,9 +113,10 @@ class StationInputs(Node):
             self,
             'time_reset_tolerance',
             5.0,
-            'A stamp this many seconds older than the newest of its stream (a bag replayed '
-            'in a loop, a restarted source) resets the node: held data are published, '
-            'buffers and windows cleared.',
+            'A stamp this many seconds older than the newest of its stream means the stream '
+            'went back; once most active streams have (a bag replayed in a loop, a restarted '
+            'source) the node resets: held data are published, buffers and windows cleared. '
+            'A stream going back alone only loses its own data.',
             read_only=True,
             min_value=0.01,
             max_value=1e9,
@@ -111,6 +133,21 @@ class StationInputs(Node):
             min_value=0.1,
             max_value=3600.0,
         )
+        self.max_targets = declare(
+            self,
+            'max_targets',
+            32,
+            'Distinct target ids the node takes (first come); points of further ids are '
+            'dropped and counted (too_many_targets). Bounds the memory and publishers a '
+            'flood of ids could create.',
+            read_only=True,
+            min_value=1,
+            max_value=4096,
+        )
+        self.targets = TargetLimit(self.max_targets)
+        self._held: list[tuple[str, int, Callable[[], None]]] = []  # (stream, stamp, redo)
+        # stream that went back -> (its newest stamp on the new line, idle clock then)
+        self._back: dict[str, tuple[int, float]] = {}
         self._heard: dict[str, float] = {}  # stream -> idle clock at its last message
         self._busy_s = 0.0
         self._busy_since: float | None = None
@@ -120,7 +157,7 @@ class StationInputs(Node):
         self._fixed_states: dict[str, StationStateSample] = {}
         for sid in station_filter:
             self._subscribe(sid)
-        self.create_timer(0.5, self._discover)
+        self.create_timer(0.5, lambda: self._guarded('housekeeping', self._housekeeping))
         self._discover()
 
     def _stations_text(self) -> str:
@@ -129,6 +166,10 @@ class StationInputs(Node):
             if self.station_filter
             else 'every station that appears'
         )
+
+    def _housekeeping(self) -> None:
+        self._discover()
+        self._check_reset()  # the streams still on the old line may have fallen quiet
 
     def _discover(self) -> None:
         """Subscribe to stations as their topics appear (all, or those listed), and to each
@@ -146,14 +187,17 @@ class StationInputs(Node):
             profile = qos.matching_reader(self.get_publishers_info_by_topic(topic))
             if profile is not None:
                 self.state_subs[sid] = self.create_subscription(
-                    Odometry, topic, lambda m, s=sid: self._on_state(m, s), profile
+                    Odometry,
+                    topic,
+                    lambda m, s=sid: self._guarded('station state', self._on_state, m, s),
+                    profile,
                 )
 
     def _subscribe(self, sid: str) -> None:
         self.subs[sid] = self.create_subscription(
             PointCloud2,
             f'stations/{sid}/measurements',
-            lambda m, s=sid: self._on_measurements(m, s),
+            lambda m, s=sid: self._guarded('measurements', self._on_measurements, m, s),
             qos.MEASUREMENTS_SUB,
         )
         self.get_logger().info(f'subscribed to station {sid}')
@@ -163,8 +207,22 @@ class StationInputs(Node):
             self.timebase = TimeBase.whole_second_of(stamp_ns_)
         return self.timebase
 
+    def _guarded(self, what: str, fn: Callable[..., object], *args: object) -> None:
+        guarded(self, self.counts, what, fn, *args)
+
+    def _stamp_of(self, msg: Any, what: str) -> int | None:
+        """The checked stamp [ns] of an incoming message, or None (rejected, counted)."""
+        try:
+            return checked_stamp_ns(msg.header.stamp)
+        except ValueError as exc:
+            self._reject('invalid_stamp', f'{what} rejected: {exc}')
+            return None
+
     def _on_state(self, msg: Odometry, sid: str) -> None:
-        tb = self._timebase(stamp_ns(msg.header.stamp))
+        ns = self._stamp_of(msg, f'station {sid} state')
+        if ns is None:
+            return
+        tb = self._timebase(ns)
         try:
             st = odometry_to_station_state(msg, tb)
         except ValueError as exc:
@@ -183,8 +241,13 @@ class StationInputs(Node):
                 f'expected {self.world_frame!r}',
             )
             return
-        if st.moving and not self._in_time(f'{sid}/state', stamp_ns(msg.header.stamp)):
+        if st.moving and not self._in_time(
+            f'{sid}/state', ns, lambda: self._use_state(msg, sid, st)
+        ):
             return
+        self._use_state(msg, sid, st)
+
+    def _use_state(self, msg: Odometry, sid: str, st: StationStateSample) -> None:
         if not st.moving:  # given back to the node after a time reset
             self._fixed_states[sid] = st
         self.world_frame = msg.header.frame_id
@@ -192,15 +255,19 @@ class StationInputs(Node):
 
     def _on_measurements(self, msg: PointCloud2, sid: str) -> None:
         self.counts['measurement_messages'] += 1
-        self.counts['measurements_received'] += msg.width * msg.height
-        tb = self._timebase(stamp_ns(msg.header.stamp))
+        self.counts['measurements_received'] += int(msg.width) * int(msg.height)
         try:
+            tb = self._timebase(checked_stamp_ns(msg.header.stamp))
             batch = cloud_to_measurements(msg, tb)
-        except MeasurementError as exc:
+        except ValueError as exc:
+            reason = exc.reason if isinstance(exc, MeasurementError) else 'stamp'
+            self.counts[f'invalid_messages_{reason}'] += 1
             self._reject('invalid_messages', f'measurement message rejected: {exc}')
             return
         if batch.rejected:
             self.counts['rejected_points'] += batch.rejected
+        for why, n in batch.reasons.items():
+            self.counts[f'rejected_points_{why}'] += n
         if batch.station_id != sid:
             self._reject(
                 'station_mismatch',
@@ -208,9 +275,35 @@ class StationInputs(Node):
                 'ignored',
             )
             return
-        if not self._in_time(sid, stamp_ns(msg.header.stamp)):
+        batch = self._admit_targets(batch)
+        if batch.time.size == 0:
             return
-        self._add_measurements(sid, batch)
+        stamp = checked_stamp_ns(msg.header.stamp)
+        if self._in_time(sid, stamp, lambda: self._add_measurements(sid, batch)):
+            self._add_measurements(sid, batch)
+
+    def _admit(self, ids: set[int]) -> bool:
+        """Whether every target id in ``ids`` is admitted (``max_targets``, first come)."""
+        return bool(np.all(self.targets.admit(sorted(ids))))
+
+    def _admit_targets(self, batch: MeasurementBatch) -> MeasurementBatch:
+        """Drop the points of target ids beyond the first ``max_targets`` seen."""
+        keep = self.targets.admit(batch.target_id)
+        if np.all(keep):
+            return batch
+        self._reject(
+            'too_many_targets',
+            f'station {batch.station_id}: {int((~keep).sum())} point(s) of target ids beyond '
+            f'the first max_targets = {self.max_targets} dropped',
+            int((~keep).sum()),
+        )
+        return replace(
+            batch,
+            time=batch.time[keep],
+            target_id=batch.target_id[keep],
+            values=batch.values[keep],
+            sigmas=batch.sigmas[keep],
+        )
 
     # -- late or quiet streams -------------------------------------------------------
     @contextmanager
@@ -238,39 +331,92 @@ class StationInputs(Node):
         gave to :meth:`_in_time` (``telemetry``, ``fixes``)."""
         if self.timebase is None:
             return {}
-        now = self._idle_clock()
         ref = self.timebase.ref_ns
-        return {
-            stream: (self._streams[stream][1] - ref) * 1e-9
+        return {stream: (self._streams[stream][1] - ref) * 1e-9 for stream in self._active()}
+
+    def _active(self) -> list[str]:
+        """Streams of the current time line heard within ``silent_after`` of waiting."""
+        now = self._idle_clock()
+        return [
+            stream
             for stream, heard in self._heard.items()
             if now - heard <= self.silent_after and self._streams[stream][0] == self._generation
-        }
+        ]
 
     # -- time going back ------------------------------------------------------------
-    def _in_time(self, stream: str, stamp: int) -> bool:
-        """Whether a message of ``stream`` stamped ``stamp`` [ns] is to be used, after
-        resetting the node if it starts a new time line (see the module docstring).
+    def _in_time(self, stream: str, stamp: int, redo: Callable[[], None] | None = None) -> bool:
+        """Whether a message of ``stream`` stamped ``stamp`` [ns] is to be used now (see the
+        module docstring for the reset rule). A message of a stream that went back is held
+        (``redo`` runs it once the reset is confirmed) and False returned.
 
         Each stream is compared with itself: messages of one topic arrive in order, while
         different topics may lag each other by a queue's worth.
         """
         tol = int(self.time_reset_tolerance * 1e9)
         gen, newest = self._streams.get(stream, (self._generation, stamp))
-        if stamp < newest - tol:
-            if gen == self._generation:  # the first stream to go back: a new time line
-                self._time_reset(stream, newest, stamp)
-            gen, newest = self._generation, stamp
+        if gen == self._generation and (stream in self._back or stamp < newest - tol):
+            if stamp >= newest - tol:  # back on the common time line: it was a lone voice
+                self._drop_held(stream)
+            else:
+                self._hold(stream, stamp, redo)
+                return False
         elif gen != self._generation:
             ref = self._generation_newest
             if ref is not None and stamp > ref + tol:  # still the old time line
                 self.counts['stale_after_reset'] += 1
                 return False
-            gen = self._generation
+            gen, newest = self._generation, stamp
         self._streams[stream] = (gen, max(newest, stamp))
         self._heard[stream] = self._idle_clock()
         ref = self._generation_newest
         self._generation_newest = stamp if ref is None else max(ref, stamp)
         return True
+
+    def _hold(self, stream: str, stamp: int, redo: Callable[[], None] | None) -> None:
+        last = self._back.get(stream, (stamp, 0.0))[0]
+        self._back[stream] = (max(last, stamp), self._idle_clock())
+        if redo is not None:
+            self._held.append((stream, stamp, redo))
+            if sum(1 for h in self._held if h[0] == stream) > _MAX_HELD:
+                self._drop_held(stream)
+                return
+        self._check_reset()
+
+    def _drop_held(self, stream: str) -> None:
+        """A stream that went back alone: forget that and drop what it held."""
+        self._back.pop(stream, None)
+        dropped = sum(1 for h in self._held if h[0] == stream)
+        self._held = [h for h in self._held if h[0] != stream]
+        self._reject(
+            'time_back_unconfirmed',
+            f'stream {stream} went back in time while most others did not: '
+            f'{dropped} of its messages dropped',
+            max(dropped, 1),
+        )
+
+    def _check_reset(self) -> None:
+        """Reset once more than half of the active streams have gone back; a stream that
+        went back and then fell quiet for ``silent_after`` no longer counts."""
+        now = self._idle_clock()
+        for stream in [
+            k for k, (_, heard) in self._back.items() if now - heard > self.silent_after
+        ]:
+            self._drop_held(stream)
+        if not self._back:
+            return
+        active = set(self._active()) | set(self._back)
+        if 2 * len(self._back) <= len(active):
+            return
+        back, held = self._back, self._held
+        self._back, self._held = {}, []
+        first = min(back, key=lambda k: back[k][0])
+        self._time_reset(first, self._streams[first][1], back[first][0])
+        for stream in back:
+            starts = [h[1] for h in held if h[0] == stream] or [back[stream][0]]
+            self._streams[stream] = (self._generation, min(starts))
+        for stream, stamp, redo in held:
+            if self._in_time(stream, stamp):
+                redo()
 
     def _time_reset(self, stream: str, newest: int, stamp: int) -> None:
         self._generation += 1
@@ -280,9 +426,9 @@ class StationInputs(Node):
         for sid, st in self._fixed_states.items():
             self._add_pose(sid, st)
         self.get_logger().warning(
-            f'time went back {(newest - stamp) * 1e-9:.3f} s on {stream} (to stamp '
-            f'{format_stamp(stamp, 0.0)}): reset #{self.counts["time_resets"]}, {done}, '
-            'buffers cleared'
+            f'time went back {(newest - stamp) * 1e-9:.3f} s on {stream} and most active '
+            f'streams (to stamp {format_stamp(stamp, 0.0)}): reset '
+            f'#{self.counts["time_resets"]}, {done}, buffers cleared'
         )
 
     # -- implemented by the node ----------------------------------------------------
@@ -292,7 +438,8 @@ class StationInputs(Node):
     def _add_pose(self, sid: str, state: StationStateSample) -> None:
         raise NotImplementedError
 
-    def _reject(self, key: str, text: str) -> None:
+    def _reject(self, key: str, text: str, n: int = 1) -> None:
+        """Count ``n`` rejections under ``key`` and log ``text`` (throttled)."""
         raise NotImplementedError
 
     def _on_time_reset(self) -> str:

@@ -168,7 +168,7 @@ class TriangulationNode(StationInputs):
         self.flushed = True
         self._start_station_inputs(station_filter, self.time_reference)
         self.create_timer(1.0, self._publish_diagnostics)
-        self.create_timer(0.2, self._flush_if_idle)
+        self.create_timer(0.2, lambda: self._guarded('flush', self._flush_if_idle))
         self.get_logger().info(f'triangulating {self._stations_text()}')
 
     # -- callbacks -----------------------------------------------------------------
@@ -258,8 +258,8 @@ class TriangulationNode(StationInputs):
                 )
             pub.publish(msg)
 
-    def _reject(self, key: str, text: str) -> None:
-        self.counts[key] += 1
+    def _reject(self, key: str, text: str, n: int = 1) -> None:
+        self.counts[key] += n
         self.get_logger().warning(f'{text} ({self.counts[key]} so far)', throttle_duration_sec=5.0)
 
     def _publish_diagnostics(self) -> None:

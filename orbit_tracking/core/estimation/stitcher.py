@@ -27,16 +27,18 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Generic, TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from orbit_tracking.core.estimation.windows import Span, blend, handover_span
 
-__all__ = ['FinalStates', 'SampledWindow', 'TrajectoryStitcher', 'split_window']
+__all__ = ['FinalStates', 'SampledWindow', 'TimeLine', 'TrajectoryStitcher', 'split_window']
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+Item = TypeVar('Item')
 
 _NS = 1e9
 _SPAN_TOLERANCE = 1e-6  # s: sample times within the window span, up to stamp rounding
@@ -288,3 +290,60 @@ class TrajectoryStitcher:
                 fs = FinalStates(tid, t[ok], x[ok], cov[ok])
         tr.windows = [w for w in tr.windows if w.t1 * _NS >= until_key]
         return fs
+
+
+class TimeLine(Generic[Item]):
+    """Which incoming windows to use, so that one stray window cannot restart a trajectory.
+
+    A window that *jumps* from the time line (it ends before the last window used, or
+    starts more than ``max_jump`` seconds after its end) may be the first window of a new
+    time line (a bag replayed in a loop, a new pass) or a stray message. It is held until
+    the next window decides:
+
+    * the next window continues from the held one (it ends after it and starts within
+      it or up to ``max_jump`` after it, closer to its end than to the old time line's):
+      both are used, the held one first (the new time line is confirmed);
+    * the next window continues the old time line: the held one is dropped;
+    * the stream ends (:meth:`release`): the held one is used.
+
+    Parameters
+    ----------
+    max_jump : float
+        Seconds after the last window's end beyond which a window start is a jump.
+    """
+
+    def __init__(self, max_jump: float) -> None:
+        if not max_jump > 0.0:
+            raise ValueError(f'max_jump must be > 0 s; got {max_jump}')
+        self.max_jump = max_jump
+        self.held: tuple[Span, Item] | None = None
+
+    def offer(self, span: Span, item: Item, last_end: float) -> tuple[list[Item], Item | None]:
+        """Decide about a window ``span`` with payload ``item``, ``last_end`` being the end
+        of the last window used (-inf before the first).
+
+        Returns
+        -------
+        use : list
+            Payloads to use now, in this order (empty: ``item`` is held).
+        dropped : payload or None
+            A held payload that the time line did not confirm.
+        """
+        t0, t1 = span
+        jump = math.isfinite(last_end) and (t1 < last_end or t0 > last_end + self.max_jump)
+        held, self.held = self.held, None
+        if held is not None:
+            h0, h1 = held[0]
+            follows = h1 < t1 and h0 <= t0 <= h1 + self.max_jump
+            if follows and abs(t0 - h1) < abs(t0 - last_end):
+                return [held[1], item], None  # it continues from the held one: confirmed
+        dropped = None if held is None else held[1]
+        if jump:
+            self.held = (span, item)
+            return [], dropped
+        return [item], dropped
+
+    def release(self) -> Item | None:
+        """The held payload, if any, to be used at the end of the stream."""
+        held, self.held = self.held, None
+        return None if held is None else held[1]

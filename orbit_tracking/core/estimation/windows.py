@@ -135,7 +135,11 @@ class WindowScheduler:
       end by ``latency``;
     * at the end of the stream (or when asked to solve what is there) the window is cut at
       the newest data time; its start is pulled back (never before ``t1_k - length / 2``)
-      so that it is at least half a window long when the data allow.
+      so that it is at least half a window long when the data allow;
+    * every window handed out ends after the previous one and moves the next start
+      forward; when float rounding would not allow that (data times so large that adding a
+      window length changes nothing), no window is handed out, so a caller looping until
+      ``None`` always ends.
 
     Parameters
     ----------
@@ -169,6 +173,8 @@ class WindowScheduler:
         contiguous = self.next_t0 is not None and first < self.next_t0 + 0.5 * c.length
         t0 = self.next_t0 if contiguous and self.next_t0 is not None else first
         t1 = t0 + c.length
+        if not t1 - t0 > 0.5 * c.length:
+            return None  # times so large that a window length is lost in rounding
         if latest >= t1 + (0.0 if final else c.latency):
             return self._hand_out((t0, t1))
         if not final or (self.last is not None and latest <= self.last[1]):
@@ -185,9 +191,16 @@ class WindowScheduler:
         the last window's end minus half a window (see the pull-back rule)."""
         return -math.inf if self.last is None else self.last[1] - 0.5 * self.cfg.length
 
-    def _hand_out(self, span: Span) -> Span:
+    def _hand_out(self, span: Span) -> Span | None:
+        """Record ``span`` as handed out; None (nothing handed out) if it would not move
+        the windows forward, so that no caller can loop on the same window."""
+        if self.last is not None and not span[1] > self.last[1]:
+            return None
+        nxt = span[1] - self.cfg.overlap
+        if self.next_t0 is not None and not nxt > self.next_t0:
+            return None
         self.last = span
-        self.next_t0 = span[1] - self.cfg.overlap
+        self.next_t0 = nxt
         return span
 
 

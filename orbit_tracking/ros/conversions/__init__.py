@@ -58,8 +58,9 @@ from orbit_tracking.ros.conversions.states import (
     target_id_from_frame,
     target_state_to_odometry,
 )
-from orbit_tracking.ros.conversions.time import TimeBase, stamp_ns
+from orbit_tracking.ros.conversions.time import TimeBase, checked_stamp_ns, stamp_ns
 from orbit_tracking.ros.conversions.windows import (
+    MAX_WINDOW_POINTS,
     WINDOW_STATE_FIELDS,
     WindowResiduals,
     WindowStates,
@@ -70,6 +71,7 @@ from orbit_tracking.ros.conversions.windows import (
 )
 
 __all__ = [
+    'MAX_WINDOW_POINTS',
     'MeasurementBatch',
     'StationStateSample',
     'TargetStateSample',
@@ -78,6 +80,7 @@ __all__ = [
     'WindowResiduals',
     'WindowStates',
     'biases_to_diagnostics',
+    'checked_stamp_ns',
     'cloud_to_measurements',
     'cloud_to_window_states',
     'diagnostic_array',

@@ -8,17 +8,25 @@ epochs) and ``target_id`` (UINT32), little-endian, ``height = 1``, dense;
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
 from sensor_msgs.msg import PointCloud2
 
 from orbit_tracking.core.errors import MeasurementError
+from orbit_tracking.core.models.limits import MAX_POINTS, MAX_TIME_OFFSET_S, implausible_rows
 from orbit_tracking.core.models.measurements import FIELDS, sigma_field
-from orbit_tracking.ros.conversions._common import _FLOAT64, _UINT32, FloatArray, _pack_cloud
-from orbit_tracking.ros.conversions.time import TimeBase
+from orbit_tracking.ros.conversions._common import (
+    _FLOAT64,
+    _UINT32,
+    FloatArray,
+    _layout_problem,
+    _pack_cloud,
+)
+from orbit_tracking.ros.conversions.time import TimeBase, checked_stamp_ns
 
 __all__ = ['MeasurementBatch', 'cloud_to_measurements', 'measurements_to_cloud']
 
@@ -39,8 +47,12 @@ class MeasurementBatch:
     values, sigmas : ndarray, shape (n, k)
         NaN values were not measured.
     rejected : int
-        Points dropped because a measured value's sigma was not finite and positive
-        or a value was infinite.
+        Points dropped as implausible (a value or sigma outside the limits of
+        :mod:`orbit_tracking.core.models.limits`, a ``time_offset`` beyond
+        ``MAX_TIME_OFFSET_S``); points without any measured value are dropped too but not
+        counted here.
+    reasons : Counter
+        Dropped points per reason (the empty ones as ``no_value``).
     """
 
     station_id: str
@@ -50,6 +62,7 @@ class MeasurementBatch:
     values: FloatArray
     sigmas: FloatArray
     rejected: int
+    reasons: Counter[str] = field(default_factory=Counter)
 
 
 def _cloud_dtype(fields: Sequence[str], with_time_offset: bool) -> np.dtype:
@@ -117,13 +130,23 @@ def cloud_to_measurements(msg: PointCloud2, timebase: TimeBase) -> MeasurementBa
     Raises
     ------
     MeasurementError
-        The message as a whole is unusable: no value field, a field of the wrong type
-        or count, a value field without its sigma field, inconsistent sizes.
-        Individual bad points are dropped and counted in ``rejected`` instead.
+        The message as a whole is unusable; its ``reason`` says why: ``stamp`` (not a valid
+        stamp), ``frame_id`` (empty), ``fields`` (no value field, a field of the wrong
+        type or count, a value field without its sigma field), ``layout`` (see
+        ``_layout_problem``: not one dense row of exactly the declared size), ``no_points``.
+        Individual bad points are dropped instead and counted in ``rejected`` and
+        ``reasons`` (:func:`~orbit_tracking.core.models.limits.implausible_rows`,
+        ``time_offset_out_of_range``, ``sigma_invalid``, ``no_value``).
     """
     station = msg.header.frame_id
+    try:
+        checked_stamp_ns(msg.header.stamp)
+    except ValueError as exc:
+        raise MeasurementError(f'station {station!r}: {exc}', 'stamp') from None
     if not station:
-        raise MeasurementError('measurement message has an empty header.frame_id (station id)')
+        raise MeasurementError(
+            'measurement message has an empty header.frame_id (station id)', 'frame_id'
+        )
     by_name = {f.name: f for f in msg.fields}
     for f in msg.fields:
         want = _UINT32 if f.name == 'target_id' else _FLOAT64
@@ -135,33 +158,26 @@ def cloud_to_measurements(msg: PointCloud2, timebase: TimeBase) -> MeasurementBa
             raise MeasurementError(
                 f'field {f.name!r} of station {station!r} has datatype {f.datatype} and count '
                 f'{f.count}; expected datatype {want} '
-                f'({"UINT32" if want == _UINT32 else "FLOAT64"}) and count 1'
+                f'({"UINT32" if want == _UINT32 else "FLOAT64"}) and count 1',
+                'fields',
             )
     fields = tuple(f for f in FIELDS if f in by_name)
     if not fields:
         raise MeasurementError(
-            f'message of station {station!r} has no measurement field; expected any of {FIELDS}'
+            f'message of station {station!r} has no measurement field; expected any of {FIELDS}',
+            'fields',
         )
     missing = [sigma_field(f) for f in fields if sigma_field(f) not in by_name]
     if missing:
         raise MeasurementError(
-            f'station {station!r}: value field(s) without sigma field {missing}'
+            f'station {station!r}: value field(s) without sigma field {missing}', 'fields'
         )
-    n = int(msg.width) * int(msg.height)
-    step = int(msg.point_step)
-    if (
-        step <= 0
-        or len(msg.data) < n * step
-        or int(msg.row_step) * int(msg.height) > len(msg.data)
-    ):
-        raise MeasurementError(
-            f'station {station!r}: data has {len(msg.data)} bytes, expected '
-            f'width*height*point_step = {n * step}'
-        )
-    for f in msg.fields:
-        size = 4 if f.datatype == _UINT32 else 8
-        if f.offset + size > step:
-            raise MeasurementError(f'station {station!r}: field {f.name!r} lies beyond point_step')
+    problem = _layout_problem(msg, MAX_POINTS)
+    if problem:
+        raise MeasurementError(f'station {station!r}: {problem}', 'layout')
+    n = int(msg.width)
+    if n == 0:
+        raise MeasurementError(f'station {station!r}: message without points', 'no_points')
     endian = '>' if msg.is_bigendian else '<'
     names = [*fields, *(sigma_field(f) for f in fields)]
     formats = [f'{endian}f8'] * len(names)
@@ -171,21 +187,25 @@ def cloud_to_measurements(msg: PointCloud2, timebase: TimeBase) -> MeasurementBa
             names.append(extra)
             formats.append(endian + fmt)
             offsets.append(by_name[extra].offset)
-    dtype = np.dtype({'names': names, 'formats': formats, 'offsets': offsets, 'itemsize': step})
-    row_bytes = int(msg.row_step) if msg.height > 1 else n * step
-    raw = bytes(msg.data)
-    if msg.height > 1 and int(msg.row_step) != int(msg.width) * step:
-        rows = [raw[r * row_bytes : r * row_bytes + msg.width * step] for r in range(msg.height)]
-        raw = b''.join(rows)
-    arr = np.frombuffer(raw, dtype=dtype, count=n)
+    dtype = np.dtype(
+        {'names': names, 'formats': formats, 'offsets': offsets, 'itemsize': msg.point_step}
+    )
+    arr = np.frombuffer(bytes(msg.data), dtype=dtype, count=n)
     values = np.stack([arr[f].astype(np.float64) for f in fields], axis=1)
     sigmas = np.stack([arr[sigma_field(f)].astype(np.float64) for f in fields], axis=1)
     offs = arr['time_offset'].astype(np.float64) if 'time_offset' in names else np.zeros(n)
     tids = arr['target_id'].astype(np.uint32) if 'target_id' in names else np.zeros(n, np.uint32)
-    measured = ~np.isnan(values)
-    bad_sigma = measured & ~(np.isfinite(sigmas) & (sigmas > 0.0))
-    bad = np.any(bad_sigma | np.isinf(values), axis=1) | ~np.isfinite(offs)
-    empty = ~np.any(measured, axis=1)
+    reasons: Counter[str] = Counter()
+    bad = ~(np.abs(offs) <= MAX_TIME_OFFSET_S)  # NaN included
+    if np.any(bad):
+        reasons['time_offset_out_of_range'] = int(bad.sum())
+    rest = np.flatnonzero(~bad)
+    implausible, why = implausible_rows(fields, values[rest], sigmas[rest])
+    bad[rest[implausible]] = True
+    reasons.update(why)
+    empty = ~np.any(~np.isnan(values), axis=1) & ~bad
+    if np.any(empty):
+        reasons['no_value'] = int(empty.sum())
     keep = ~bad & ~empty
     t0 = timebase.to_seconds(msg.header.stamp)
     return MeasurementBatch(
@@ -196,4 +216,5 @@ def cloud_to_measurements(msg: PointCloud2, timebase: TimeBase) -> MeasurementBa
         values=values[keep],
         sigmas=sigmas[keep],
         rejected=int(np.count_nonzero(bad)),
+        reasons=reasons,
     )

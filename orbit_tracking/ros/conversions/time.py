@@ -1,4 +1,5 @@
-"""Stamps <-> float seconds: :class:`TimeBase` and :func:`stamp_ns`.
+"""Stamps <-> float seconds: :class:`TimeBase`, :func:`stamp_ns` and
+:func:`checked_stamp_ns` (the nodes' check of every incoming stamp).
 
 The core computes in float seconds relative to a :class:`TimeBase` (an integer number of
 nanoseconds, by default the scenario epoch), so that float64 keeps sub-nanosecond
@@ -11,7 +12,7 @@ from dataclasses import dataclass
 
 from builtin_interfaces.msg import Time
 
-__all__ = ['TimeBase', 'stamp_ns']
+__all__ = ['TimeBase', 'checked_stamp_ns', 'stamp_ns']
 
 
 @dataclass(frozen=True)
@@ -50,3 +51,21 @@ class TimeBase:
 def stamp_ns(stamp: Time) -> int:
     """Integer nanoseconds of a stamp."""
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def checked_stamp_ns(stamp: Time) -> int:
+    """Integer nanoseconds of an incoming stamp, after checking it is a valid
+    ``builtin_interfaces/Time``.
+
+    Raises
+    ------
+    ValueError
+        ``nanosec`` is not below 1e9 (it would read as a jump of up to 4.29 s) or ``sec``
+        is negative (before 1970: no tracking data carries such a stamp).
+    """
+    sec, nsec = int(stamp.sec), int(stamp.nanosec)
+    if not 0 <= nsec < 1_000_000_000:
+        raise ValueError(f'stamp nanosec must lie in [0, 1e9); got {nsec}')
+    if sec < 0:
+        raise ValueError(f'stamp sec must be >= 0 (not before 1970); got {sec}')
+    return sec * 1_000_000_000 + nsec

@@ -17,11 +17,12 @@ from sensor_msgs.msg import PointCloud2
 
 from orbit_tracking.core.estimation.residuals import ResidualStats
 from orbit_tracking.core.time import format_stamp, parse_stamp
-from orbit_tracking.ros.conversions._common import FloatArray, _dt, _pack_cloud
+from orbit_tracking.ros.conversions._common import FloatArray, _dt, _layout_problem, _pack_cloud
 from orbit_tracking.ros.conversions.diagnostics import diagnostic_array, diagnostic_status
-from orbit_tracking.ros.conversions.time import TimeBase
+from orbit_tracking.ros.conversions.time import TimeBase, checked_stamp_ns
 
 __all__ = [
+    'MAX_WINDOW_POINTS',
     'WINDOW_STATE_FIELDS',
     'WindowResiduals',
     'WindowStates',
@@ -30,6 +31,13 @@ __all__ = [
     'window_residuals_to_msg',
     'window_states_to_cloud',
 ]
+
+MAX_WINDOW_POINTS = 200_000
+"""Most states one ``estimator/window_states`` message may hold (every target of a window
+at the output step: 60 s at 0.1 s for 32 targets is 19 200)."""
+
+MAX_WINDOW_LENGTH_S = 86_400.0
+"""Longest window [s] a window states message may declare."""
 
 WINDOW_STATE_FIELDS: tuple[str, ...] = (
     'time_offset',
@@ -158,10 +166,15 @@ def cloud_to_window_states(msg: PointCloud2, timebase: TimeBase) -> WindowStates
     Raises
     ------
     ValueError
-        A missing field or one of the wrong datatype or count, data shorter than
-        ``width * height * point_step``, non-finite values, a covariance with a negative
+        An invalid stamp, a layout other than the contract's (see ``_layout_problem``; at
+        most :data:`MAX_WINDOW_POINTS` points), a missing field or one of the wrong
+        datatype or count, non-finite values, a covariance with a negative
         variance, or a ``window_length`` that is not one positive value.
     """
+    checked_stamp_ns(msg.header.stamp)
+    problem = _layout_problem(msg, MAX_WINDOW_POINTS)
+    if problem:
+        raise ValueError(f'window states layout: {problem}')
     by_name = {f.name: f for f in msg.fields}
     names = [*WINDOW_STATE_FIELDS, 'target_id']
     missing = [n for n in names if n not in by_name]
@@ -215,6 +228,14 @@ def cloud_to_window_states(msg: PointCloud2, timebase: TimeBase) -> WindowStates
         ):
             raise ValueError('window_length must be one positive value for every point')
         t1 = t0 + float(length[0]) if m else t0
+        if m and not (
+            length[0] <= MAX_WINDOW_LENGTH_S and np.all((off >= -1e-6) & (off <= length[0] + 1e-6))
+        ):
+            raise ValueError(
+                f'window of {length[0]:g} s with state offsets in [{off.min():g}, '
+                f'{off.max():g}] s: the length must be at most {MAX_WINDOW_LENGTH_S:g} s and '
+                'every state inside the window'
+            )
     else:
         t1 = float(time.max()) if m else t0
     return WindowStates(

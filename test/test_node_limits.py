@@ -1,0 +1,185 @@
+"""Limits of the processing nodes against hostile or broken input (issue 13), checked by
+calling the nodes' callbacks in this process: target-id floods, measurements whose stamps
+or values are implausible, a time far beyond what a window length can step over, and any
+exception inside a callback. The same classes over real DDS are in test_faults.py."""
+
+from __future__ import annotations
+
+import numpy as np
+from conftest import default_context
+from sensor_msgs.msg import PointCloud2
+
+from orbit_tracking.ros.conversions import TimeBase, measurements_to_cloud, window_states_to_cloud
+
+EPOCH_NS = 1_700_000_000 * 1_000_000_000
+TB = TimeBase(EPOCH_NS)
+
+
+def _ranges(n_ids: int, t: float = 1.0, station: str = 'cw01') -> PointCloud2:
+    ids = np.arange(n_ids, dtype=np.uint32)
+    return measurements_to_cloud(
+        station,
+        ('range',),
+        np.full(n_ids, t),
+        ids,
+        np.full((n_ids, 1), 1.0e5),
+        np.full((n_ids, 1), 1.0),
+        TB,
+    )
+
+
+def test_a_flood_of_target_ids_is_cut_at_max_targets_and_counted():
+    from orbit_tracking.ros.triangulation_node import TriangulationNode
+
+    with default_context(max_targets=5, time_reference=EPOCH_NS * 1e-9):
+        node = TriangulationNode()
+        try:
+            node._on_measurements(_ranges(300), 'cw01')
+            node._on_measurements(_ranges(300, t=1.1), 'cw01')
+            assert node.targets.known == {0, 1, 2, 3, 4}
+            assert node.counts['too_many_targets'] == 2 * 295
+        finally:
+            node.destroy_node()
+
+
+def test_bad_measurement_messages_are_counted_by_reason_and_the_node_goes_on():
+    from orbit_tracking.ros.estimator_node import EstimatorNode
+
+    with default_context(time_reference=EPOCH_NS * 1e-9):
+        node = EstimatorNode()
+        try:
+            bad_stamp = _ranges(1)
+            bad_stamp.header.stamp.nanosec = 1_000_000_000
+            padded = _ranges(2)
+            padded.data = bytes(padded.data) + b'\0' * 8
+            wild = _ranges(3)
+            arr = np.frombuffer(bytes(wild.data), dtype='<f8').copy()
+            arr[0] = 1e300  # the first point's range
+            wild.data = arr.tobytes()
+            for msg in (bad_stamp, padded, wild, _ranges(1, t=2.0)):
+                node._on_measurements(msg, 'cw01')
+            c = node.counts
+            assert c['invalid_messages_stamp'] == 1 and c['invalid_messages_layout'] == 1
+            assert c['invalid_messages'] == 2
+            assert c['rejected_points_range_out_of_range'] == 1
+            assert node.buffer.latest_time() == 2.0  # the good rows were taken
+        finally:
+            node.destroy_node()
+
+
+def test_an_exception_inside_a_callback_is_counted_not_fatal():
+    from orbit_tracking.ros.estimator_node import EstimatorNode
+
+    with default_context(time_reference=EPOCH_NS * 1e-9):
+        node = EstimatorNode()
+        try:
+
+            def broken(*_args: object) -> None:
+                raise RuntimeError('a bug')
+
+            node._add_measurements = broken
+            node._guarded('measurements', node._on_measurements, _ranges(1), 'cw01')
+            assert node.counts['internal_error'] == 1
+        finally:
+            node.destroy_node()
+
+
+def test_the_estimator_solves_a_bounded_number_of_windows_per_call():
+    """However many windows are due (a backlog), one call solves at most a bounded
+    number, so that timers, services and Ctrl-C are served in between."""
+    from orbit_tracking.ros import estimator_node as mod
+
+    with default_context(time_reference=EPOCH_NS * 1e-9, window_length=1.0, window_overlap=0.0):
+        node = mod.EstimatorNode()
+        try:
+            solved: list = []
+            node._solve = lambda span, tb: solved.append(span) or True
+            for k in range(60):
+                node._on_measurements(_ranges(1, t=0.5 * k), 'cw01')
+            node.flushed = False
+            first = node._solve_due(final=True)
+            assert len(first) == mod._MAX_WINDOWS_PER_CALL
+            rest = node._solve_due(final=True)
+            assert 0 < len(rest) <= mod._MAX_WINDOWS_PER_CALL
+            assert all(b[1] > a[1] for a, b in zip(solved, solved[1:], strict=False))
+        finally:
+            node.destroy_node()
+
+
+def test_the_results_node_publishes_at_most_max_targets_targets():
+    from orbit_tracking.ros.results_node import ResultsNode
+
+    with default_context(max_targets=3, time_reference=EPOCH_NS * 1e-9):
+        node = ResultsNode()
+        try:
+            t = np.repeat(np.arange(0.0, 1.01, 0.1), 10)
+            ids = np.tile(np.arange(10, dtype=np.uint32), 11)
+            x = np.zeros((t.size, 6))
+            x[:, 0] = 6.4e6
+            cov = np.broadcast_to(np.eye(6), (t.size, 6, 6)).copy()
+            node._on_window(window_states_to_cloud('earth', 0.0, t, ids, x, cov, TB, t1=1.0))
+            node._on_window(window_states_to_cloud('earth', 0.5, t + 0.5, ids, x, cov, TB, t1=1.5))
+            node._flush('end')
+            assert len(node.state_pubs) == 3
+            assert node.counts['too_many_targets'] == 2 * 7 * 11
+            assert node.counts['internal_error'] == 0
+        finally:
+            node.destroy_node()
+
+
+def test_the_results_node_drops_a_residuals_message_naming_too_many_stations():
+    from orbit_tracking.core.estimation.residuals import ResidualStats
+    from orbit_tracking.ros.conversions import window_residuals_to_msg
+    from orbit_tracking.ros.results_node import ResultsNode
+
+    def stats(n: int) -> dict[str, ResidualStats]:
+        one, ones = np.ones(1), np.ones(1, dtype=int)
+        return {
+            f's{k}': ResidualStats(f's{k}', ('range',), 1, ones, one, one, 0 * ones, 0)
+            for k in range(n)
+        }
+
+    with default_context(time_reference=EPOCH_NS * 1e-9):
+        node = ResultsNode()
+        try:
+            node._on_residuals(window_residuals_to_msg(stats(3), 0.0, 1.0, None, TB))
+            assert len(node.residual_totals) == 3
+            node._on_residuals(window_residuals_to_msg(stats(300), 1.0, 2.0, None, TB))
+            assert node.counts['invalid_residuals'] == 1 and len(node.residual_totals) == 3
+        finally:
+            node.destroy_node()
+
+
+# -- the core pieces -----------------------------------------------------------------------
+
+
+def test_target_limit_admits_first_come_and_then_only_known_ids():
+    from orbit_tracking.core.models.limits import TargetLimit
+
+    lim = TargetLimit(3)
+    # the lowest new ids of a message first
+    np.testing.assert_array_equal(lim.admit([5, 1, 5, 9, 7]), [True, True, True, False, True])
+    np.testing.assert_array_equal(lim.admit([7, 1, 2]), [True, True, False])
+    assert lim.known == {1, 5, 7}
+
+
+def test_time_line_holds_a_jump_until_the_next_window_decides():
+    from orbit_tracking.core.estimation.stitcher import TimeLine
+
+    tl: TimeLine[str] = TimeLine(max_jump=100.0)
+    assert tl.offer((0.0, 12.0), 'w0', -np.inf) == (['w0'], None)
+    assert tl.offer((8.0, 20.0), 'w1', 12.0) == (['w1'], None)
+    # far ahead, then the old line goes on: the stray window is dropped
+    assert tl.offer((1e6, 1e6 + 12.0), 'far', 20.0) == ([], None)
+    assert tl.offer((16.0, 28.0), 'w2', 20.0) == (['w2'], 'far')
+    # back (a loop), then a window following it: the new time line is confirmed
+    assert tl.offer((0.0, 12.0), 'v0', 28.0) == ([], None)
+    assert tl.offer((8.0, 20.0), 'v1', 28.0) == (['v0', 'v1'], None)
+    # a short pass looped: the next window is as close to the old end as to the held one
+    tl2: TimeLine[str] = TimeLine(max_jump=100.0)
+    tl2.offer((5.0, 13.0), 'a', -np.inf)
+    assert tl2.offer((0.0, 12.0), 'b0', 13.0) == ([], None)
+    assert tl2.offer((8.0, 20.0), 'b1', 13.0) == (['b0', 'b1'], None)
+    # the stream ends on a held window: it is used
+    assert tl2.offer((-50.0, -38.0), 'c', 20.0) == ([], None)
+    assert tl2.release() == 'c' and tl2.release() is None
