@@ -6,6 +6,7 @@ exception inside a callback. The same classes over real DDS are in test_faults.p
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from conftest import default_context
 from sensor_msgs.msg import PointCloud2
 
@@ -183,3 +184,26 @@ def test_time_line_holds_a_jump_until_the_next_window_decides():
     # the stream ends on a held window: it is used
     assert tl2.offer((-50.0, -38.0), 'c', 20.0) == ([], None)
     assert tl2.release() == 'c' and tl2.release() is None
+
+
+def test_a_long_path_is_thinned_to_path_max_poses_and_keeps_its_newest_pose():
+    from orbit_tracking.ros.results_node import ResultsNode
+
+    with default_context(path_max_poses=100, time_reference=EPOCH_NS * 1e-9):
+        node = ResultsNode()
+        try:
+            for k in range(5):  # 5 windows of 60 states each, 0.1 s apart
+                t = np.arange(k * 6.0, k * 6.0 + 6.0 + 1e-9, 0.1)
+                x = np.zeros((t.size, 6))
+                x[:, 0] = 6.4e6
+                cov = np.broadcast_to(np.eye(6), (t.size, 6, 6)).copy()
+                node._on_window(
+                    window_states_to_cloud('earth', t[0], t, 0, x, cov, TB, t1=float(t[-1]))
+                )
+            node._flush('end')
+            path = node.paths[0]
+            assert 50 <= len(path) <= 100
+            assert TB.to_seconds(path[-1].header.stamp) == pytest.approx(30.0)
+            assert TB.to_seconds(path[0].header.stamp) == pytest.approx(0.0)
+        finally:
+            node.destroy_node()

@@ -170,6 +170,17 @@ class ResultsNode(Node):
             min_value=0.0,
             max_value=3600.0,
         )
+        self.path_max_poses = declare(
+            self,
+            'path_max_poses',
+            20000,
+            'Most poses a path holds: beyond it every other pose is dropped (the whole pass '
+            'stays covered, more coarsely), so a night-long pass keeps the latched path '
+            'message bounded.',
+            read_only=True,
+            min_value=100,
+            max_value=10_000_000,
+        )
         max_targets = declare(
             self,
             'max_targets',
@@ -471,6 +482,8 @@ class ResultsNode(Node):
                     ps.header = msg.header
                     ps.pose = msg.pose.pose
                     path.append(ps)
+                    if len(path) > self.path_max_poses:  # thin out, keeping the newest
+                        path[:] = path[(len(path) - 1) % 2 :: 2]
             n += len(fs)
             self.path_pubs[tid].publish(self._path_msg(tid))
             if tid == self._path_target():
