@@ -79,6 +79,7 @@ def test_record_into_an_existing_folder_is_a_clean_error_and_leaves_rclpy_shut_d
 ):
     import rclpy
 
+    (tmp_path / 'keep.txt').write_text('precious')  # an empty folder is used as it is
     for _ in range(2):  # a second call in the same process works the same way
         assert main(['record', '--out', str(tmp_path), '--duration', '1']) == 2
         err = capsys.readouterr().err

@@ -184,7 +184,7 @@ def test_offline_estimate_refuses_bad_windows_and_an_existing_output(short_bag, 
     out.mkdir()
     (out / 'keep.txt').write_text('x')
     assert cli_main(['estimate', str(bag), '--out', str(out), '--quiet']) == 2
-    assert 'exists; pass --force' in capsys.readouterr().err
+    assert 'exists and is not empty; pass --force' in capsys.readouterr().err
     args = ['estimate', str(bag), '--out', str(out), '--window-length', '10', '--overlap', '6']
     assert cli_main([*args, '--force', '--quiet']) == 2
     assert 'overlap' in capsys.readouterr().err

@@ -1,7 +1,11 @@
 """Reading a recorded bag for the offline tools: what the bag says about itself
 (:class:`BagContext`), its messages decoded and validated in log-time order
 (:func:`bag_inputs`, rejections counted by reason), the truth it carries, and the
-observations an estimate needs (:func:`read_for_estimation`)."""
+observations an estimate needs (:func:`read_for_estimation`).
+
+A bag that cannot serve as input (not a bag, unreadable, no input topic, or stations with
+measurements and not one with a state) raises :class:`~orbit_tracking.ros.bag.BagError`
+with one line saying so."""
 
 from __future__ import annotations
 
@@ -20,7 +24,7 @@ from orbit_tracking.core.data.tables import TargetStates
 from orbit_tracking.core.errors import ConfigError, MeasurementError
 from orbit_tracking.core.sim.scenario import load_scenario, truth_biases
 from orbit_tracking.core.triangulation.pipeline import TimedFix, TriangulationPipeline
-from orbit_tracking.ros.bag import bag_custom_data, read_bag
+from orbit_tracking.ros.bag import BagError, bag_custom_data, bag_topics, read_bag
 from orbit_tracking.ros.conversions import (
     TimeBase,
     cloud_to_measurements,
@@ -33,7 +37,9 @@ from orbit_tracking.ros.conversions import (
 __all__ = [
     'BagContext',
     'BagInput',
+    'INPUT_TYPES',
     'bag_inputs',
+    'input_topics',
     'bag_message_counts',
     'feed_pipeline',
     'read_for_estimation',
@@ -54,25 +60,44 @@ class BagContext:
     truth: dict[int, TargetStates] = field(default_factory=dict)
     truth_biases: dict[tuple[str, str], float] | None = None
     truth_biases_source: str = ''
+    stations_without_state: dict[str, str] = field(default_factory=dict)
 
     @classmethod
     def from_custom_data(cls, path: str | Path) -> BagContext:
+        """The context of a bag's ``custom_data``; a label that cannot be parsed is a
+        :class:`BagError`."""
         data = bag_custom_data(path)
         ctx = cls()
-        if 'orbit_tracking.epoch' in data:
-            ctx.timebase = TimeBase.from_seconds(float(data['orbit_tracking.epoch']))
-        ctx.world_frame = data.get('orbit_tracking.world_frame', '')
-        ctx.scenario = data.get('orbit_tracking.scenario', '')
-        ctx.gaps = [tuple(g) for g in yaml.safe_load(data.get('orbit_tracking.gaps', '[]')) or []]
-        if 'orbit_tracking.biases' in data:
-            biases = yaml.safe_load(data['orbit_tracking.biases']) or {}
-            ctx.truth_biases = {
-                (str(sid), str(name)): float(v)
-                for sid, values in biases.items()
-                for name, v in values.items()
-            }
-            ctx.truth_biases_source = 'bag metadata (orbit_tracking.biases)'
+        key = ''
+        try:
+            key = 'orbit_tracking.epoch'
+            if key in data:
+                ctx.timebase = TimeBase.from_seconds(float(data[key]))
+            ctx.world_frame = data.get('orbit_tracking.world_frame', '')
+            ctx.scenario = data.get('orbit_tracking.scenario', '')
+            key = 'orbit_tracking.gaps'
+            gaps = yaml.safe_load(data.get(key, '[]')) or []
+            ctx.gaps = [(float(a), float(b)) for a, b in gaps]
+            key = 'orbit_tracking.biases'
+            if key in data:
+                biases = yaml.safe_load(data[key]) or {}
+                ctx.truth_biases = {
+                    (str(sid), str(name)): float(v)
+                    for sid, values in biases.items()
+                    for name, v in values.items()
+                }
+                ctx.truth_biases_source = 'bag metadata (orbit_tracking.biases)'
+        except (ValueError, TypeError, AttributeError, yaml.YAMLError) as exc:
+            text = ' '.join(str(exc).split())
+            raise BagError(f'{path}: metadata custom_data {key} cannot be read: {text}') from exc
         return ctx
+
+    def state_lines(self) -> list[str]:
+        """One line per station whose measurements had no station state to go with."""
+        return [
+            f'station {sid}: measurements but no state ({why}); its measurements were not used'
+            for sid, why in sorted(self.stations_without_state.items())
+        ]
 
     def scenario_truth_biases(self) -> None:
         """For a simulated bag written before its metadata kept the biases (it has truth
@@ -100,6 +125,85 @@ class BagContext:
 
 _TARGET_TOPICS = frozenset({'telemetry/state', 'triangulation/fixes', 'truth/state'})
 
+INPUT_TYPES = {
+    'measurements': 'sensor_msgs/msg/PointCloud2',
+    'state': 'nav_msgs/msg/Odometry',
+    'telemetry/state': 'nav_msgs/msg/Odometry',
+    'truth/state': 'nav_msgs/msg/Odometry',
+    'triangulation/fixes': 'geometry_msgs/msg/PoseWithCovarianceStamped',
+}
+"""Message type of each input topic (``stations/<id>/measurements`` as ``measurements``,
+``stations/<id>/state`` as ``state``), as the contract has them."""
+
+
+def _input_kind(topic: str) -> str:
+    """``measurements``, ``state``, a target topic, or '' for a topic that is no input."""
+    parts = topic.lstrip('/').split('/')
+    if len(parts) == 3 and parts[0] == 'stations' and parts[2] in ('measurements', 'state'):
+        return parts[2]
+    return topic.lstrip('/') if topic.lstrip('/') in _TARGET_TOPICS else ''
+
+
+_DATA_KINDS = frozenset({'measurements', 'telemetry/state', 'triangulation/fixes'})
+
+
+def input_topics(bag: str | Path) -> dict[str, int]:
+    """The input topics of a bag (names as recorded) with their message counts.
+
+    Opening the bag checks it (:func:`~orbit_tracking.ros.bag.bag_topics`).
+
+    Raises
+    ------
+    BagError
+        The bag cannot be read, an input topic has another message type than the
+        contract's, no measurement, telemetry or fix topic has a message, or every station
+        with measurements lacks a ``stations/<id>/state`` topic with messages.
+    """
+    topics = bag_topics(bag)
+    out: dict[str, int] = {}
+    for topic, (msgtype, n) in sorted(topics.items()):
+        kind = _input_kind(topic)
+        if not kind:
+            continue
+        if msgtype != INPUT_TYPES[kind]:
+            raise BagError(
+                f'{bag}: topic {topic} has message type {msgtype}; an input of orbit-tracking '
+                f'needs {INPUT_TYPES[kind]}'
+            )
+        out[topic] = n
+    if not any(n for t, n in out.items() if _input_kind(t) in _DATA_KINDS):
+        have = ', '.join(f'{t} ({n})' for t, (_, n) in sorted(topics.items())) or 'no topic'
+        raise BagError(
+            f'{bag} has no usable topic: no messages on stations/<id>/measurements, '
+            f'telemetry/state or triangulation/fixes (it has {have})'
+        )
+    measured = _stations(out, 'measurements')
+    with_state = _stations(out, 'state')
+    if measured and not measured & with_state:
+        raise BagError(_no_state_message(bag, {s: _why_no_state(s, out) for s in measured}))
+    return out
+
+
+def _stations(topics: dict[str, int], kind: str) -> set[str]:
+    return {t.lstrip('/').split('/')[1] for t, n in topics.items() if n and _input_kind(t) == kind}
+
+
+def _why_no_state(sid: str, topics: dict[str, int], invalid: int = 0) -> str:
+    n = next((v for t, v in topics.items() if t.lstrip('/') == f'stations/{sid}/state'), None)
+    if n is None:
+        return f'no stations/{sid}/state topic'
+    if not n and not invalid:
+        return f'stations/{sid}/state has no messages'
+    return f'none of the {invalid or n} messages of stations/{sid}/state is valid'
+
+
+def _no_state_message(bag: str | Path, why: dict[str, str]) -> str:
+    return (
+        f'{bag}: no station state to place the measurements by: '
+        + '; '.join(f'station {sid} has measurements but {w}' for sid, w in sorted(why.items()))
+        + ' (station states come on stations/<id>/state as nav_msgs/Odometry)'
+    )
+
 
 @dataclass(frozen=True)
 class BagInput:
@@ -117,47 +221,73 @@ def bag_inputs(
     Undecodable messages and messages whose station id differs from their topic's are
     counted in ``counts`` (``invalid_messages``, ``invalid_state``, ``station_mismatch``,
     ``invalid_fix``) and skipped; ``rejected_points`` counts bad points inside good
-    messages. The first station state sets ``ctx.world_frame``.
+    messages. The first station state sets ``ctx.world_frame``. Stations with
+    measurements but no valid state go to ``ctx.stations_without_state``.
+
+    Raises
+    ------
+    BagError
+        See :func:`input_topics`; also when the bag fails half way through, or when in the
+        end no station with measurements had a valid state.
     """
-    for m in tqdm(read_bag(bag), unit='msg', disable=not progress, desc=desc):
-        topic = m.topic.lstrip('/')
-        parts = topic.split('/')
-        station = len(parts) == 3 and parts[0] == 'stations'
-        if not station and topic not in _TARGET_TOPICS:
-            continue  # e.g. /clock, /diagnostics, outputs: not inputs, no time base from them
-        tb = ctx.tb(stamp_ns(m.msg.header.stamp))
-        if len(parts) == 3 and parts[0] == 'stations' and parts[2] == 'measurements':
-            try:
-                b = cloud_to_measurements(m.msg, tb)
-            except MeasurementError:
-                counts['invalid_messages'] += 1
-                continue
-            if b.rejected:
-                counts['rejected_points'] += b.rejected
-            if b.station_id != parts[1]:
-                counts['station_mismatch'] += 1
-                continue
-            yield BagInput('measurements', b)
-        elif len(parts) == 3 and parts[0] == 'stations' and parts[2] == 'state':
-            try:
-                st = odometry_to_station_state(m.msg, tb)
-            except ValueError:
-                counts['invalid_state'] += 1
-                continue
-            if st.station_id != parts[1]:
-                counts['station_mismatch'] += 1
-                continue
-            ctx.world_frame = ctx.world_frame or m.msg.header.frame_id
-            yield BagInput('station_state', st)
-        elif topic == 'telemetry/state':
-            yield BagInput('telemetry', odometry_to_target_state(m.msg, tb))
-        elif topic == 'triangulation/fixes':
-            try:
-                yield BagInput('fix', msg_to_fix(m.msg, tb))
-            except ValueError:
-                counts['invalid_fix'] += 1
-        elif topic == 'truth/state':
-            yield BagInput('truth', odometry_to_target_state(m.msg, tb))
+    topics = input_topics(bag)  # checks the bag before the progress bar starts
+    measured: set[str] = set()
+    with_state: set[str] = set()
+    bad_state: Counter[str] = Counter()
+    bar = tqdm(total=sum(topics.values()), unit='msg', disable=not progress, desc=desc)
+    try:
+        for m in read_bag(bag, topics):
+            bar.update(1)
+            topic = m.topic.lstrip('/')
+            parts = topic.split('/')
+            tb = ctx.tb(stamp_ns(m.msg.header.stamp))
+            if len(parts) == 3 and parts[2] == 'measurements':
+                try:
+                    b = cloud_to_measurements(m.msg, tb)
+                except MeasurementError:
+                    counts['invalid_messages'] += 1
+                    continue
+                if b.rejected:
+                    counts['rejected_points'] += b.rejected
+                if b.station_id != parts[1]:
+                    counts['station_mismatch'] += 1
+                    continue
+                measured.add(b.station_id)
+                yield BagInput('measurements', b)
+            elif len(parts) == 3 and parts[2] == 'state':
+                try:
+                    st = odometry_to_station_state(m.msg, tb)
+                except ValueError:
+                    counts['invalid_state'] += 1
+                    bad_state[parts[1]] += 1
+                    continue
+                if st.station_id != parts[1]:
+                    counts['station_mismatch'] += 1
+                    bad_state[parts[1]] += 1
+                    continue
+                ctx.world_frame = ctx.world_frame or m.msg.header.frame_id
+                with_state.add(st.station_id)
+                yield BagInput('station_state', st)
+            elif topic == 'telemetry/state':
+                yield BagInput('telemetry', odometry_to_target_state(m.msg, tb))
+            elif topic == 'triangulation/fixes':
+                try:
+                    yield BagInput('fix', msg_to_fix(m.msg, tb))
+                except ValueError:
+                    counts['invalid_fix'] += 1
+            elif topic == 'truth/state':
+                yield BagInput('truth', odometry_to_target_state(m.msg, tb))
+        ctx.stations_without_state = {
+            sid: _why_no_state(sid, topics, bad_state[sid])
+            for sid in sorted(measured - with_state)
+        }
+        if measured and not with_state:
+            raise BagError(_no_state_message(bag, ctx.stations_without_state))
+    except BagError:
+        bar.leave = False  # the error line takes the bar's place
+        raise
+    finally:
+        bar.close()
 
 
 def truth_states(samples: list[Any]) -> dict[int, TargetStates]:
@@ -226,11 +356,8 @@ def read_for_estimation(
 
 
 def bag_message_counts(bag: str | Path) -> dict[str, int]:
-    """Messages per topic (leading ``/`` dropped), from the bag's ``metadata.yaml``."""
-    meta = yaml.safe_load((Path(bag) / 'metadata.yaml').read_text())
-    info = meta.get('rosbag2_bagfile_information', {})
+    """Messages per topic (leading ``/`` dropped), as the bag's index lists them."""
     out: dict[str, int] = {}
-    for t in info.get('topics_with_message_count') or []:
-        name = str(t['topic_metadata']['name']).lstrip('/')
-        out[name] = out.get(name, 0) + int(t['message_count'])
+    for name, (_msgtype, n) in bag_topics(bag).items():
+        out[name.lstrip('/')] = out.get(name.lstrip('/'), 0) + n
     return dict(sorted(out.items()))

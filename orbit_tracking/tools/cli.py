@@ -60,11 +60,19 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run one subcommand; its exit status.
+
+    The errors a command raises on purpose (:class:`OrbitTrackingError`: a bad bag,
+    scenario or parameter file, an output folder that exists, ...) and file-system errors
+    (``OSError``: a path that cannot be read or written) are printed as one line,
+    ``orbit-tracking <command>: error: <what>``, on stderr, with exit status 2.
+    """
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args))
-    except (OrbitTrackingError, FileNotFoundError, FileExistsError) as exc:
-        print(f'orbit-tracking {args.command}: error: {exc}', file=sys.stderr)
+    except (OrbitTrackingError, OSError) as exc:
+        text = ' '.join(str(exc).split()) or type(exc).__name__
+        print(f'orbit-tracking {args.command}: error: {text}', file=sys.stderr)
         return 2
 
 

@@ -111,6 +111,7 @@ class EstimationReport:
             out.append('input: ' + ', '.join(f'{k} {v}' for k, v in sorted(self.counts.items())))
         for span, why in self.failures:
             out.append(f'window [{span[0]:.3f}, {span[1]:.3f}] s failed: {why}')
+        out += self.context.state_lines()
         out += evaluation_lines(self.evaluation)
         out += self.bias_notes
         out += bias_lines(self.biases, self.bias_evaluation)
@@ -273,7 +274,13 @@ def estimate_bag(
     finally:
         bar.close()
     if not estimates:
-        why = '; '.join(f'[{a:.3f}, {b:.3f}]: {w}' for (a, b), w in failures) or 'no data'
+        why = '; '.join(f'[{a:.3f}, {b:.3f}]: {w}' for (a, b), w in failures)
+        if not why and not obs.stations:
+            withheld = ', '.join(f'{sid} {n}' for sid, n in sorted(buf.withheld.items()))
+            why = 'no measurement has a station state at its epoch' + (
+                f' (measurements per station without one: {withheld})' if withheld else ''
+            )
+        why = '; '.join([why or 'no data', *ctx.state_lines()])
         raise EstimationError(f'{bag}: no window could be solved ({why})')
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -379,6 +386,7 @@ def estimate_bag(
             'bias_parameters': len(est_cfg.biases),
         },
         'counts': {k: int(v) for k, v in sorted(counts.items())},
+        'stations_without_state': dict(ctx.stations_without_state),
         'totals': {
             'windows': len(estimates) + len(failures),
             'converged': int(sum(e.success for e in estimates)),

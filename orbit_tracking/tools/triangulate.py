@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -48,6 +49,7 @@ class TriangulationReport:
             + ', '.join(f'{k} {v}' for k, v in sorted(c.items()) if k != 'fixes')
         ]
         where = ' outside gaps' if self.context.gaps else ''
+        out += self.context.state_lines()
         for tid, ev in self.evaluation.items():
             out.append(
                 f'target {tid} vs truth{where} ({int(ev["n"])} fixes): '
@@ -62,9 +64,18 @@ class TriangulationReport:
         return out
 
 
-def _independent_stride(period: float, max_dt: float) -> int:
-    """Fixes this many epochs apart share no measurement sample."""
-    return max(1, math.ceil(2.0 * max_dt / period - 1e-9))
+def _independent_stride(period: float, intervals: Iterable[float]) -> int:
+    """Fixes this many epochs apart share no measurement sample: twice the longest
+    sampling interval of the stations' series (``intervals``), in epochs of ``period``.
+
+    An interval that is not known (``inf``: a series with fewer than three samples, or
+    ``nan``) says nothing about sharing and is left out; without a known period or any
+    known interval every fix counts (1).
+    """
+    known = [dt for dt in intervals if math.isfinite(dt) and dt > 0.0]
+    if not known or not (math.isfinite(period) and period > 0.0):
+        return 1
+    return max(1, math.ceil(2.0 * max(known) / period - 1e-9))
 
 
 def triangulate_bag(
@@ -133,9 +144,9 @@ def triangulate_bag(
             )
     files.append(bag_out)
     report = TriangulationReport(fixes, counts, ctx, files)
-    period = pipe.aligner.period()
-    max_dt = max((s.median_dt() for s in pipe.aligner.series.values()), default=period)
-    stride = _independent_stride(period, max_dt) if math.isfinite(period) else 1
+    stride = _independent_stride(
+        pipe.aligner.period(), (s.median_dt() for s in pipe.aligner.series.values())
+    )
     for tid in targets:
         if tid not in ctx.truth:
             continue
@@ -166,6 +177,7 @@ def triangulate_bag(
         'bag': str(bag),
         'scenario': ctx.scenario,
         'counts': dict(counts),
+        'stations_without_state': dict(ctx.stations_without_state),
         'evaluation': report.evaluation,
         'nees': {
             tid: {'mean': s.mean, 'n': s.n, 'lo': s.lo, 'hi': s.hi, 'consistent': s.consistent}

@@ -137,10 +137,15 @@ class _Series:
     _dt_cache: tuple[int, float] = (0, math.inf)
 
     def median_dt(self) -> float:
-        """Median sampling interval (recomputed as the series doubles in length)."""
+        """Median sampling interval (recomputed as the series doubles in length).
+
+        A series pruned to its last samples (a station that went out of range) keeps the
+        interval it had: the epoch grid and the stride of independent fixes depend on it.
+        ``inf`` only while it was never known (fewer than three samples so far).
+        """
         n, value = self._dt_cache
         if len(self.t) < 3:
-            return math.inf
+            return value
         if len(self.t) >= 2 * n or not math.isfinite(value):
             value = float(np.median(np.diff(self.t[-200:])))
             self._dt_cache = (len(self.t), value)
@@ -177,7 +182,7 @@ class Aligner:
         self.series: dict[tuple[str, int], _Series] = {}
         self.latest = -math.inf
         self.earliest = math.inf
-        self.next_k: int | None = None
+        self.last_epoch: float | None = None  # time of the last epoch fixed
         self.counts: Counter[str] = Counter()
         self._jumps = 0
 
@@ -217,7 +222,7 @@ class Aligner:
         self.series.clear()
         for sid in [s for s, p in self.poses.items() if p.moving]:
             del self.poses[sid]
-        self.latest, self.earliest, self.next_k, self._jumps = -math.inf, math.inf, None, 0
+        self.latest, self.earliest, self.last_epoch, self._jumps = -math.inf, math.inf, None, 0
 
     def add_measurements(
         self,
@@ -350,7 +355,13 @@ class Aligner:
             if until is None
             else min(until, self.latest)
         )
-        k_lo = math.ceil(self.earliest / period - 1e-9) if self.next_k is None else self.next_k
+        # the first epoch after the last one fixed, on the grid of the current period (it
+        # shrinks when a faster station starts): epochs never go back nor skip ahead
+        k_lo = (
+            math.ceil(self.earliest / period - 1e-9)
+            if self.last_epoch is None
+            else math.floor(self.last_epoch / period + 1e-9) + 1
+        )
         k_hi = math.floor(limit / period + 1e-9)
         if k_hi - k_lo > 1_000_000:
             self.counts['epochs_skipped'] += k_hi - k_lo - 1_000_000
@@ -359,7 +370,7 @@ class Aligner:
         for k in range(k_lo, k_hi + 1):
             out.extend(self._epoch(k * period))
         if k_hi >= k_lo:
-            self.next_k = k_hi + 1
+            self.last_epoch = k_hi * period
             self._prune(k_hi * period)
         return out
 

@@ -8,6 +8,8 @@ import argparse
 import sys
 import time
 
+from orbit_tracking.tools.commands.common import add_force, input_bag, prepare_output_folder
+
 __all__ = ['add_scenarios', 'add_simulate', 'add_record', 'add_replay']
 
 
@@ -25,9 +27,10 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     from orbit_tracking.tools.simulate import simulate_to_bag
 
     sc = load_scenario(args.scenario)
+    out = prepare_output_folder(args.out, args.force)
     t0 = time.monotonic()
     n = simulate_to_bag(
-        sc, args.out, args.storage, args.batch_period, not args.no_truth, not args.quiet
+        sc, out, args.storage, args.batch_period, not args.no_truth, not args.quiet
     )
     print(
         f'wrote {n} messages of scenario {sc.name} to {args.out} ({time.monotonic() - t0:.1f} s)'
@@ -48,6 +51,7 @@ def _cmd_record(args: argparse.Namespace) -> int:
         from orbit_tracking.tools.simulate import scenario_custom_data
 
         labels = scenario_custom_data(load_scenario(args.scenario))
+    prepare_output_folder(args.out, args.force)
     rclpy.init()
     try:
         node = RecorderNode(args.out, args.topics or DEFAULT_TOPICS, args.storage, labels)
@@ -89,13 +93,15 @@ def _cmd_play(args: argparse.Namespace) -> int:
     from rclpy.executors import ExternalShutdownException
     from rosbags.rosbag2 import ReaderError
 
+    from orbit_tracking.ros.bag import BagError
     from orbit_tracking.ros.player import BagPlayerNode
 
+    bag = input_bag(args.bag, scan=True)  # a bad bag: one line before any node starts
     rclpy.init()
     node = None
     try:
         node = BagPlayerNode(
-            args.bag,
+            bag,
             args.rate,
             args.topics,
             args.wait_for_subscribers,
@@ -109,13 +115,14 @@ def _cmd_play(args: argparse.Namespace) -> int:
             rclpy.spin_once(node, timeout_sec=0.05)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except (ValueError, ReaderError) as exc:
-        print(f'orbit-tracking {args.command}: error: {exc}', file=sys.stderr)
+    except (ValueError, ReaderError, BagError) as exc:  # e.g. a storage file bad half way
+        text = ' '.join(str(exc).split())
+        print(f'orbit-tracking {args.command}: error: {text}', file=sys.stderr)
         return 2
     finally:
         if node is not None:
             loops = f' ({node.loops} loop(s) restarted)' if node.loops else ''
-            print(f'played {node.count} messages from {args.bag}{loops}', flush=True)
+            print(f'played {node.count} messages from {bag}{loops}', flush=True)
             node.close()
             node.destroy_node()
         rclpy.try_shutdown()
@@ -133,6 +140,7 @@ def add_simulate(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
     s = sub.add_parser('simulate', help='simulate a scenario into a rosbag2 (no DDS)')
     s.add_argument('--scenario', required=True, help='scenario name or YAML path')
     s.add_argument('--out', required=True, help='bag folder to create')
+    add_force(s)
     s.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap')
     s.add_argument(
         '--batch-period',
@@ -149,6 +157,7 @@ def add_record(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     """Add the ``record`` subcommand to ``sub``."""
     s = sub.add_parser('record', help='record the contract topics from DDS into a rosbag2')
     s.add_argument('--out', required=True, help='bag folder to create')
+    add_force(s)
     s.add_argument(
         '--topics', nargs='*', help='topic glob patterns (default: the contract topics)'
     )
@@ -182,7 +191,7 @@ def add_replay(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         aliases=['play'],
         help='publish the messages of a bag over DDS with their recorded pace (ros2 bag play)',
     )
-    s.add_argument('bag', help='rosbag2 folder')
+    s.add_argument('bag', help='rosbag2 folder (or its only .mcap/.db3 file)')
     s.add_argument('--rate', type=float, default=1.0, help='playback speed factor')
     s.add_argument(
         '--loop',

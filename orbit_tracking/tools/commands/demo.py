@@ -12,6 +12,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from orbit_tracking.tools.commands.common import add_force, prepare_output_folder
+
 if TYPE_CHECKING:
     from orbit_tracking.core.sim.scenario import Scenario
     from orbit_tracking.tools.recording import RecordingReport
@@ -20,8 +22,6 @@ __all__ = ['add_demo']
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    import shutil
-
     import yaml
 
     from orbit_tracking.core.sim.scenario import load_scenario
@@ -36,13 +36,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         )
         return 2
     sc = load_scenario(args.scenario)
-    out = Path(args.out or Path('runs') / sc.name)
-    if out.exists():
-        if not args.force:
-            raise FileExistsError(
-                f'{out} exists; pass --force to replace it or choose another --out'
-            )
-        shutil.rmtree(out)
+    out = prepare_output_folder(args.out or Path('runs') / sc.name, args.force)
     out.mkdir(parents=True)
     t_all = time.monotonic()
     steps = 4 if args.offline_check else 3
@@ -183,7 +177,7 @@ def add_demo(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     s.add_argument('--scenario', default='seed000_s1', help='scenario name or YAML path')
     s.add_argument('--out', default=None, help='run folder (default runs/<scenario>)')
-    s.add_argument('--force', action='store_true', help='replace an existing run folder')
+    add_force(s)
     s.add_argument(
         '--rate-factor',
         type=float,

@@ -9,11 +9,13 @@ import time
 from pathlib import Path
 
 from orbit_tracking.core.errors import OrbitTrackingError
+from orbit_tracking.tools.commands.common import add_force, input_bag, prepare_output_folder
 
 __all__ = ['add_triangulate', 'add_estimate', 'add_report']
 
 
 def _cmd_triangulate(args: argparse.Namespace) -> int:
+    bag = input_bag(args.bag)  # checked before the numerical modules load: a quick error
     from orbit_tracking.core.triangulation.alignment import AlignConfig
     from orbit_tracking.core.triangulation.intersection import Gates
     from orbit_tracking.tools.triangulate import triangulate_bag
@@ -24,8 +26,9 @@ def _cmd_triangulate(args: argparse.Namespace) -> int:
         smoothing_eps=args.smoothing_eps if args.smoothing_eps > 0 else None,
     )
     gates = Gates(args.min_angle, args.max_gdop, args.miss_probability)
+    out = prepare_output_folder(args.out, args.force, [bag])
     t0 = time.monotonic()
-    report = triangulate_bag(args.bag, args.out, align, gates, args.target_id, not args.quiet)
+    report = triangulate_bag(bag, out, align, gates, args.target_id, not args.quiet)
     for line in report.lines():
         print(line)
     print(f'wrote {", ".join(str(f) for f in report.files)} ({time.monotonic() - t0:.1f} s)')
@@ -33,8 +36,7 @@ def _cmd_triangulate(args: argparse.Namespace) -> int:
 
 
 def _cmd_estimate(args: argparse.Namespace) -> int:
-    import shutil
-
+    bag = input_bag(args.bag)  # checked before the numerical modules load: a quick error
     from orbit_tracking.core.estimation.bias_files import load_bias_declaration
     from orbit_tracking.core.estimation.config import EstimatorConfig
     from orbit_tracking.core.estimation.windows import WindowConfig
@@ -48,17 +50,9 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     est = EstimatorConfig(knot_method=args.knot_method, use_telemetry=not args.no_telemetry)
     # read the declaration before anything is deleted: a bad file is a one-line error
     biases = load_bias_declaration(args.biases)
-    if not Path(args.bag).is_dir():
-        raise FileNotFoundError(f'no bag folder {args.bag}')
-    out = Path(args.out)
-    if out.exists() and any(out.iterdir()):
-        if not args.force:
-            raise FileExistsError(
-                f'{out} exists; pass --force to replace it or choose another --out'
-            )
-        shutil.rmtree(out)
+    out = prepare_output_folder(args.out, args.force, [bag])
     t0 = time.monotonic()
-    report = estimate_bag(args.bag, out, est, win, not args.quiet, biases)
+    report = estimate_bag(bag, out, est, win, not args.quiet, biases)
     for line in report.lines():
         print(line)
     print(f'wrote {", ".join(str(f) for f in report.files)} ({time.monotonic() - t0:.1f} s)')
@@ -66,6 +60,8 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
+    if args.bag is not None:
+        input_bag(args.bag)  # before the plotting modules load: a quick error
     from orbit_tracking.tools.report import (
         build_html_report,
         output_world_frame,
@@ -97,7 +93,11 @@ def _cmd_report(args: argparse.Namespace) -> int:
 def add_triangulate(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add the ``triangulate`` subcommand to ``sub``."""
     s = sub.add_parser('triangulate', help='intersect the lines of sight of a bag into fixes.csv')
-    s.add_argument('bag', help='rosbag2 folder with stations/<id>/measurements and state')
+    s.add_argument(
+        'bag',
+        help='rosbag2 folder with stations/<id>/measurements and state (or its only .mcap/.db3 '
+        'file)',
+    )
     s.add_argument('--out', required=True, help='output folder (fixes.csv, bag/, summary.yaml)')
     s.add_argument(
         '--period',
@@ -135,6 +135,7 @@ def add_triangulate(sub: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         default=None,
         help='target written to fixes.csv (default: lowest id)',
     )
+    add_force(s)
     s.add_argument('--quiet', action='store_true', help='no progress bar')
     s.set_defaults(func=_cmd_triangulate)
 
@@ -142,7 +143,11 @@ def add_triangulate(sub: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 def add_estimate(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add the ``estimate`` subcommand to ``sub``."""
     s = sub.add_parser('estimate', help='estimate the trajectory of a bag in sliding windows')
-    s.add_argument('bag', help='rosbag2 folder with stations/<id>/measurements and state')
+    s.add_argument(
+        'bag',
+        help='rosbag2 folder with stations/<id>/measurements and state (or its only .mcap/.db3 '
+        'file)',
+    )
     s.add_argument(
         '--out', required=True, help='output folder (trajectory.csv, bag/, summary.yaml)'
     )
@@ -171,7 +176,7 @@ def add_estimate(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         help='estimate station biases: a YAML declaration (config/biases_example.yaml) or '
         '"auto" (every measured field of every station, weak priors); writes biases.csv',
     )
-    s.add_argument('--force', action='store_true', help='replace an existing output folder')
+    add_force(s)
     s.add_argument('--quiet', action='store_true', help='no progress bars')
     s.set_defaults(func=_cmd_estimate)
 

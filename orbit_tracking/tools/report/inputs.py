@@ -12,11 +12,9 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from rosbags.rosbag2 import ReaderError
-
 from orbit_tracking.core.errors import ConfigError
 from orbit_tracking.core.sim.scenario import load_scenario
-from orbit_tracking.ros.bag import read_bag
+from orbit_tracking.ros.bag import BagError, bag_folder, read_bag
 from orbit_tracking.tools.bag_inputs import BagContext, read_for_estimation
 from orbit_tracking.tools.report.folder import RunContext, context_from_scenario
 
@@ -69,18 +67,19 @@ def report_context(
     when it has no truth the scenario ``summary.yaml`` names gives it, if it is one of the
     package's (or a path).
 
+    A bag found through ``summary.yaml`` that cannot be read is a note, not an error.
+
     Raises
     ------
-    FileNotFoundError, ConfigError
+    BagError, FileNotFoundError, ConfigError
         ``bag`` or ``scenario`` was given and cannot be read.
     """
     notes: list[str] = []
     if scenario:
         return context_from_scenario(load_scenario(scenario)), notes
+    ctx: RunContext | None = None
     if bag is not None:
-        path: Path | None = Path(bag)
-        if not (Path(bag) / 'metadata.yaml').is_file():
-            raise FileNotFoundError(f'no bag folder {bag}')
+        ctx = context_from_bag(bag_folder(bag))
     else:
         path = find_input_bag(folder, summary)
         if path is None and (summary or {}).get('bag'):
@@ -88,7 +87,11 @@ def report_context(
                 f'the input bag {(summary or {})["bag"]} named in summary.yaml was not found '
                 '(pass --bag BAG for residuals and truth)'
             )
-    ctx = context_from_bag(path) if path is not None else None
+        elif path is not None:
+            try:
+                ctx = context_from_bag(path)
+            except BagError as exc:
+                notes.append(f'the input bag named in summary.yaml cannot be read: {exc}')
     name = str((summary or {}).get('scenario') or '')
     if (ctx is None or not ctx.truth) and name:
         try:
@@ -124,6 +127,6 @@ def output_world_frame(folder: Path) -> str:
         return ''
     try:
         first = next(iter(read_bag(folder / 'bag', ['trajectory/states'])), None)
-    except (OSError, ValueError, KeyError, ReaderError):
+    except (OSError, ValueError, KeyError, BagError):
         return ''
     return str(first.msg.header.frame_id) if first is not None else ''
