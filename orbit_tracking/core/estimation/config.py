@@ -12,7 +12,7 @@ from orbit_tracking.core.estimation.coverage import CoverageConfig
 from orbit_tracking.core.estimation.knots import KnotConfig
 from orbit_tracking.core.models.systematic import BiasParameter
 
-__all__ = ['KNOT_METHODS', 'EstimationError', 'EstimatorConfig', 'Segment']
+__all__ = ['KNOT_METHODS', 'ROBUST_LOSSES', 'EstimationError', 'EstimatorConfig', 'Segment']
 
 
 FloatArray = NDArray[np.float64]
@@ -22,6 +22,9 @@ Segment = tuple[float, float]
 
 
 KNOT_METHODS: tuple[str, ...] = ('sparse', 'dense', 'uniform', 'dynamics', 'polynomial')
+
+ROBUST_LOSSES: tuple[str, ...] = ('huber', 'cauchy', 'none')
+"""Losses of the robust warm-up solve that decides which rows are gross errors."""
 
 
 class EstimationError(OrbitTrackingError, RuntimeError):
@@ -47,6 +50,24 @@ class EstimatorConfig:
         after ``max_iterations``; a step is halved at most ``max_halvings`` times.
     gate_sigma : float
         Whitened-residual gate (0 disables it); ``gate_rounds`` re-solves at most.
+        Station values and fixes beyond it are rejected; telemetry epochs only beyond
+        ``GROSS_FACTOR`` (4) times it (see :mod:`~orbit_tracking.core.estimation.gauss_newton`).
+    robust_loss : str
+        Loss of the warm-up solve that decides the gross errors (residuals beyond
+        ``GROSS_FACTOR * gate_sigma``, 20 sigma) before the plain solve: ``huber``
+        (default), ``cauchy``, or ``none`` (no warm-up, the behaviour before: one gross
+        error drags the first fit until the gate sees most rows off and refuses; only
+        absurd values, beyond 1e10 sigma, are still set aside). The robust fit only
+        chooses rows to gate: the solution and its covariance are plain weighted least
+        squares on the rows kept.
+    robust_scale : float, optional
+        Tuning constant ``c`` of that loss in units of the rows' robust scale (1.4826 x
+        the median absolute whitened residual of each kind of row, never below 1): with
+        Huber a row beyond ``c`` pulls no harder than one at ``c``. Default (None):
+        ``GROSS_FACTOR * gate_sigma``, so every row within the gross-error limit is
+        plain least squares and a window without gross errors takes exactly the plain
+        solve's steps (no extra cost). Smaller values (Huber's classical 1.345,
+        Cauchy's 2.385) downweight clean rows too and cost a separate warm-up solve.
     use_telemetry : bool
         Fuse telemetry as weighted measurements with its own error model (whose knots
         the measurement-driven test refines like the trajectory's).
@@ -93,6 +114,8 @@ class EstimatorConfig:
     max_halvings: int = 12
     gate_sigma: float = 5.0
     gate_rounds: int = 3
+    robust_loss: str = 'huber'
+    robust_scale: float | None = None
     use_telemetry: bool = True
     telemetry_error_spacing: float = 15.0
     estimate_telemetry_noise: bool = True
@@ -117,6 +140,14 @@ class EstimatorConfig:
             raise ValueError('max_iterations must be >= 1 and max_halvings >= 0')
         if self.gate_sigma < 0.0 or self.fix_weight < 0.0:
             raise ValueError('gate_sigma and fix_weight must be >= 0')
+        if self.robust_loss not in ROBUST_LOSSES:
+            raise ValueError(
+                f'robust_loss must be one of {ROBUST_LOSSES}; got {self.robust_loss!r}'
+            )
+        if self.robust_scale is not None and not (
+            np.isfinite(self.robust_scale) and self.robust_scale > 0.0
+        ):
+            raise ValueError(f'robust_scale must be finite and > 0; got {self.robust_scale}')
         if self.telemetry_error_spacing <= 0.0:
             raise ValueError('telemetry_error_spacing must be > 0')
         if self.thrust_along_velocity < 0.0 or self.thrust_grid <= 0.0 or self.gm <= 0.0:

@@ -24,8 +24,14 @@ Measurement rows:
 * fixes, optionally, as weak position measurements (their covariance divided by
   ``fix_weight``); they come from the same measurements, so they are off by default.
 
-Outliers: after the warm-up solve, rows whose whitened residual exceeds ``gate_sigma``
-are rejected (counted per station and reason) and the solve repeated.
+Outliers (:func:`~orbit_tracking.core.estimation.gauss_newton.solve`): values with an
+absurd whitened residual are set aside first; a robust warm-up solve (``robust_loss``,
+Huber by default) fits the window without letting a gross error drag it, and what lies
+beyond 20 sigma of it is rejected as a gross error. The plain solve then runs on the
+rest and its own residual gate rejects station values and fixes beyond ``gate_sigma``
+(telemetry epochs beyond 20 sigma), re-solving until the gate settles. Rejections are
+counted per station (or ``telemetry_<id>``, ``fixes_<id>``) and reason. On a window
+without gross errors the warm-up takes the plain solve's own steps.
 """
 
 from __future__ import annotations
@@ -232,7 +238,8 @@ def estimate(
                 a.interior.size for a in selections[tid].trajectory.axes
             )
             selections[tid] = replace(selections[tid], trajectory=prob.trajs[tid])
-        out, it2, h2 = solve(prob, beta, cfg)
+        # the refined problem carries the gates over (rebuild): no warm-up to decide them
+        out, it2, h2 = solve(prob, beta, cfg, warm_up=False)
         iterations += it2
         halvings += h2
         r, jac, cov, cond, singular = covariance(prob, out.beta)
@@ -251,7 +258,8 @@ def estimate(
         if nan:
             rejected[(b.station, 'not_measured')] += nan
         pred, _, _ = prob.predict_block(bi, out.beta)
-        rr = residual(b.fields, b.values, pred) / b.sigmas
+        with np.errstate(over='ignore', invalid='ignore'):  # a gated absurd value
+            rr = residual(b.fields, b.values, pred) / b.sigmas
         rr[g] = np.nan
         residuals[b.station if b.target == ids[0] else f'{b.station}/{b.target}'] = (
             b.time,
@@ -259,7 +267,15 @@ def estimate(
             rr,
         )
     for tb in prob.telemetry:
-        used[f'telemetry_{tb.target}'] += int(tb.valid_p.sum() + tb.valid_v.sum())
+        use_p, use_v = prob.telemetry_use(tb)
+        used[f'telemetry_{tb.target}'] += int(use_p.sum() + use_v.sum())
+        n_gated = int((tb.valid_p & ~use_p).sum() + (tb.valid_v & ~use_v).sum())
+        if n_gated:
+            rejected[(f'telemetry_{tb.target}', 'residual_gate')] += n_gated
+    for fb in prob.fixes:
+        g = prob.gated.get(('fix', fb.target), np.zeros_like(fb.valid))
+        if g.any():
+            rejected[(f'fixes_{fb.target}', 'residual_gate')] += int((fb.valid & g).sum())
     dof = max(r.size - prob.n, 1)
     targets = {}
     for tid, s in selections.items():

@@ -1,12 +1,14 @@
 """The least-squares problem of one window (seed 000, eq. 7): the unknowns (spline
 coefficients of every target, telemetry error splines, station biases), the whitened
 measurement rows of stations, telemetry, fixes and the thrust constraint, and their sparse
-Jacobian. :class:`Problem` evaluates residuals and Jacobians; the solver is in
-:mod:`~orbit_tracking.core.estimation.gauss_newton`."""
+Jacobian. :class:`Problem` evaluates residuals and Jacobians, tells which rows are
+measurements (:data:`ROBUST_KINDS`, what a robust loss and the residual gate act on) and
+gives the whitened residual of every unit the gate may reject (:meth:`Problem.gate_units`);
+the solver is in :mod:`~orbit_tracking.core.estimation.gauss_newton`."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -20,9 +22,36 @@ from orbit_tracking.core.estimation.knots import uniform_knots
 from orbit_tracking.core.models.measurements import predict, residual
 from orbit_tracking.core.models.systematic import CLOCK, BiasModel
 
-__all__ = ['Problem', 'thrust_normal']
+__all__ = ['ROBUST_KINDS', 'GateKey', 'GateUnits', 'Problem', 'Tag', 'thrust_normal']
 
 FloatArray = NDArray[np.float64]
+
+GateKey = int | tuple[str, int]
+"""Key of a block in :attr:`Problem.gated`: a station block's index, or
+``('telemetry_position' | 'telemetry_velocity' | 'fix', target id)``."""
+
+Tag = tuple[str, int, NDArray[np.bool_]]
+"""What :meth:`Problem.evaluate` says about a run of its rows: kind, station block index or
+target id, and the mask of the block's entries the rows come from (in order)."""
+
+GateUnits = tuple[GateKey, str, FloatArray, NDArray[np.bool_]]
+"""One block as the residual gate sees it: its key, its kind (one of
+:data:`ROBUST_KINDS`), the whitened residual of each unit it may reject and which units
+are measured (same shape)."""
+
+ROBUST_KINDS: tuple[str, ...] = ('station', 'telemetry_position', 'telemetry_velocity', 'fix')
+"""Kinds of rows that are measurements (a robust loss and the residual gate act on them);
+the other rows (priors, the thrust constraint) are always taken at face value."""
+
+_ROWS_PER_ENTRY = {
+    'station': 1,
+    'telemetry_position': 3,
+    'telemetry_velocity': 3,
+    'telemetry_prior': 1,
+    'fix': 3,
+    'thrust': 3,
+    'bias_prior': 1,
+}
 
 
 @dataclass
@@ -234,7 +263,8 @@ class Problem:
         self.bias_lower = np.array([bp.bounds[0] for bp in self.biases], dtype=float)
         self.bias_upper = np.array([bp.bounds[1] for bp in self.biases], dtype=float)
         self.n = n
-        self.gated: dict[int, NDArray[np.bool_]] = {}
+        # units the residual gate rejected: station values (m, k), telemetry and fix epochs (m,)
+        self.gated: dict[GateKey, NDArray[np.bool_]] = {}
         self.gate_refused = 0.0
         self.rows: list[tuple[int, FloatArray, FloatArray, FloatArray, bool]] = []
 
@@ -297,16 +327,18 @@ class Problem:
 
     def evaluate(
         self, beta: FloatArray, jacobian: bool
-    ) -> tuple[FloatArray, sp.csr_matrix | None, list[tuple[str, int, NDArray[np.bool_]]]]:
-        """Whitened residuals (and Jacobian of the model, ``d F / d beta``)."""
+    ) -> tuple[FloatArray, sp.csr_matrix | None, list[Tag]]:
+        """Whitened residuals of the rows not gated (and Jacobian of the model,
+        ``d F / d beta``), with the :data:`Tag` of each run of rows."""
         res: list[FloatArray] = []
         jac: list[sp.csr_matrix] = []
-        tags: list[tuple[str, int, NDArray[np.bool_]]] = []
+        tags: list[Tag] = []
         # per residual row: target, time, dF/dp and dF/dv (whitened), for the knot test
         rows: list[tuple[int, FloatArray, FloatArray, FloatArray, bool]] = []
         for bi, b in enumerate(self.stations):
             pred, h, dpar = self.predict_block(bi, beta, jacobian)
-            r = residual(b.fields, np.nan_to_num(b.values), pred) / b.sigmas
+            with np.errstate(over='ignore', invalid='ignore'):  # only in rows not used
+                r = residual(b.fields, np.nan_to_num(b.values), pred) / b.sigmas
             use = b.valid & ~self.gated.get(bi, np.zeros_like(b.valid))
             res.append(r[use])
             tags.append(('station', bi, use))
@@ -327,22 +359,20 @@ class Problem:
                 tt = np.broadcast_to(b.time[:, None], use.shape)[use]
                 rows.append((b.target, tt, hw[:, :, :3][use], hw[:, :, 3:][use], False))
         for tb in self.telemetry:
-            coef = self._coef(beta, tb.target)
             ecoef = beta[tb.offset : tb.offset + 3 * tb.axis.n_coef]
-            m = tb.time.size
-            pred_p = (tb.pw @ coef + tb.ew @ ecoef).reshape(m, 3) + self.origin[tb.target]
-            pred_v = (tb.vw @ coef + tb.edw @ ecoef).reshape(m, 3)
+            dp, dv = self.telemetry_residuals(tb, beta)
             sp_, sv_ = tb.noise
-            rp = ((np.nan_to_num(tb.position) - pred_p) / sp_)[tb.valid_p].ravel()
-            rv = ((np.nan_to_num(tb.velocity) - pred_v) / sv_)[tb.valid_v].ravel()
+            use_p, use_v = self.telemetry_use(tb)
+            rp = dp[use_p].ravel() / sp_
+            rv = dv[use_v].ravel() / sv_
             prior = ecoef / np.tile([tb.prior_sigma[0]], ecoef.size)
             res.extend([rp, rv, -prior])
-            tags.append(('telemetry_position', tb.target, tb.valid_p))
-            tags.append(('telemetry_velocity', tb.target, tb.valid_v))
+            tags.append(('telemetry_position', tb.target, use_p))
+            tags.append(('telemetry_velocity', tb.target, use_v))
             tags.append(('telemetry_prior', tb.target, np.ones(ecoef.size, dtype=bool)))
             if jacobian:
-                rows_p = np.flatnonzero(np.repeat(tb.valid_p, 3))
-                rows_v = np.flatnonzero(np.repeat(tb.valid_v, 3))
+                rows_p = np.flatnonzero(np.repeat(use_p, 3))
+                rows_v = np.flatnonzero(np.repeat(use_v, 3))
                 o = self.offsets[tb.target]
                 jp = _shift(tb.pw[rows_p], o, self.n) + _shift(tb.ew[rows_p], tb.offset, self.n)
                 jv = _shift(tb.vw[rows_v], o, self.n) + _shift(tb.edw[rows_v], tb.offset, self.n)
@@ -350,7 +380,7 @@ class Problem:
                 pj = sp.identity(ecoef.size, format='csr') / tb.prior_sigma[0]
                 jac.append(-_shift(pj, tb.offset, self.n))
                 eye = np.eye(3)
-                for valid, sig, vel in ((tb.valid_p, sp_, False), (tb.valid_v, sv_, True)):
+                for valid, sig, vel in ((use_p, sp_, False), (use_v, sv_, True)):
                     nv = int(valid.sum())
                     unit = np.tile(eye / sig, (nv, 1))
                     zero = np.zeros_like(unit)
@@ -361,18 +391,16 @@ class Problem:
                 z = np.zeros((ecoef.size, 3))
                 rows.append((-1, np.zeros(ecoef.size), z, z, False))
         for fb in self.fixes:
-            coef = self._coef(beta, fb.target)
-            m = fb.time.size
-            d = fb.position - (fb.pw @ coef).reshape(m, 3) - self.origin[fb.target]
-            r = np.einsum('mij,mj->mi', fb.whiten, d)[fb.valid].ravel()
+            use = fb.valid & ~self.gated.get(('fix', fb.target), np.zeros_like(fb.valid))
+            r = self._fix_residuals(fb, beta)[use].ravel()
             res.append(r)
-            tags.append(('fix', fb.target, fb.valid))
+            tags.append(('fix', fb.target, use))
             if jacobian:
                 wblk = sp.block_diag(list(fb.whiten), format='csr')
-                jm = (wblk @ fb.pw)[np.flatnonzero(np.repeat(fb.valid, 3))]
+                jm = (wblk @ fb.pw)[np.flatnonzero(np.repeat(use, 3))]
                 jac.append(_shift(jm, self.offsets[fb.target], self.n))
-                wv = fb.whiten[fb.valid].reshape(-1, 3)
-                tt = np.repeat(fb.time[fb.valid], 3)
+                wv = fb.whiten[use].reshape(-1, 3)
+                tt = np.repeat(fb.time[use], 3)
                 rows.append((fb.target, tt, wv, np.zeros_like(wv), False))
         for tid, dp, dv, da in self.dynamics:
             coef = self._coef(beta, tid)
@@ -418,3 +446,71 @@ class Problem:
     def cost(self, beta: FloatArray) -> float:
         r, _, _ = self.evaluate(beta, False)
         return float(r @ r)
+
+    # -- what the robust loss and the residual gate act on ------------------------------
+
+    def telemetry_residuals(
+        self, tb: _TelemetryBlock, beta: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        """Telemetry position and velocity minus the model (trajectory plus telemetry
+        error), (m, 3) each, not whitened (rows not measured hold garbage)."""
+        coef = self._coef(beta, tb.target)
+        ecoef = beta[tb.offset : tb.offset + 3 * tb.axis.n_coef]
+        m = tb.time.size
+        pred_p = (tb.pw @ coef + tb.ew @ ecoef).reshape(m, 3) + self.origin[tb.target]
+        pred_v = (tb.vw @ coef + tb.edw @ ecoef).reshape(m, 3)
+        return np.nan_to_num(tb.position) - pred_p, np.nan_to_num(tb.velocity) - pred_v
+
+    def telemetry_use(self, tb: _TelemetryBlock) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+        """Telemetry epochs whose position and velocity are measured and not gated."""
+        gp = self.gated.get(('telemetry_position', tb.target))
+        gv = self.gated.get(('telemetry_velocity', tb.target))
+        return (
+            tb.valid_p if gp is None else tb.valid_p & ~gp,
+            tb.valid_v if gv is None else tb.valid_v & ~gv,
+        )
+
+    def _fix_residuals(self, fb: _FixBlock, beta: FloatArray) -> FloatArray:
+        coef = self._coef(beta, fb.target)
+        m = fb.time.size
+        d = fb.position - (fb.pw @ coef).reshape(m, 3) - self.origin[fb.target]
+        return np.asarray(np.einsum('mij,mj->mi', fb.whiten, d))
+
+    def gate_units(self, beta: FloatArray) -> list[GateUnits]:
+        """Every block the residual gate may reject from, with the whitened residual of
+        each unit: a station's single value, or the largest whitened component of a
+        telemetry position, telemetry velocity or fix epoch (rejected as a whole). A
+        residual that is not finite stays so (NaN, inf)."""
+        out: list[GateUnits] = []
+        with np.errstate(over='ignore', invalid='ignore'):
+            for bi, b in enumerate(self.stations):
+                pred, _, _ = self.predict_block(bi, beta)
+                r = residual(b.fields, np.nan_to_num(b.values), pred) / b.sigmas
+                out.append((bi, 'station', r, b.valid))
+            for tb in self.telemetry:
+                dp, dv = self.telemetry_residuals(tb, beta)
+                for kind, d, sig, valid in (
+                    ('telemetry_position', dp, tb.noise[0], tb.valid_p),
+                    ('telemetry_velocity', dv, tb.noise[1], tb.valid_v),
+                ):
+                    out.append(((kind, tb.target), kind, _largest(d / sig), valid))
+            for fb in self.fixes:
+                w = self._fix_residuals(fb, beta)
+                out.append((('fix', fb.target), 'fix', _largest(w), fb.valid))
+        return out
+
+    @staticmethod
+    def row_kinds(tags: Sequence[Tag]) -> NDArray[np.int_]:
+        """For every row :meth:`evaluate` returned with ``tags``: the index of its kind in
+        :data:`ROBUST_KINDS`, or -1 for a row that is not a measurement."""
+        parts = []
+        for kind, _, mask in tags:
+            n = int(np.count_nonzero(mask)) * _ROWS_PER_ENTRY[kind]
+            k = ROBUST_KINDS.index(kind) if kind in ROBUST_KINDS else -1
+            parts.append(np.full(n, k, dtype=int))
+        return np.concatenate(parts) if parts else np.zeros(0, dtype=int)
+
+
+def _largest(r: FloatArray) -> FloatArray:
+    """Largest absolute component per row of (m, 3); NaN if any component is NaN."""
+    return np.asarray(np.max(np.abs(r), axis=1))
