@@ -207,3 +207,38 @@ def test_a_long_path_is_thinned_to_path_max_poses_and_keeps_its_newest_pose():
             assert TB.to_seconds(path[0].header.stamp) == pytest.approx(0.0)
         finally:
             node.destroy_node()
+
+
+def test_implausible_states_are_refused_at_the_boundary():
+    from orbit_tracking.core.models.limits import state_problem
+
+    p, v = np.array([4.0e6, 3.0e6, 3.5e6]), np.array([100.0, 2000.0, -30.0])
+    assert state_problem(p, v, np.full(3, 0.01), np.full(3, 1e-4)) is None
+    assert 'position' in state_problem(np.array([1e300, 0.0, 0.0]), v)
+    assert 'velocity' in state_problem(p, np.array([0.0, 1e6, 0.0]))
+    assert 'position' in state_problem(p, v, np.array([0.01, 0.0, 0.01]))  # unfilled
+    assert 'velocity' in state_problem(p, v, np.full(3, 0.01), np.full(3, 1e-300))
+    assert 'position' in state_problem(np.array([np.nan, 0.0, 0.0]))
+
+
+def test_the_estimator_counts_wild_telemetry_and_fixes_instead_of_using_them():
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from nav_msgs.msg import Odometry
+
+    from orbit_tracking.ros.conversions import fix_to_msg, target_state_to_odometry
+    from orbit_tracking.ros.estimator_node import EstimatorNode
+
+    p, v = np.array([4.0e6, 3.0e6, 3.5e6]), np.array([100.0, 2000.0, -30.0])
+    with default_context(time_reference=EPOCH_NS * 1e-9):
+        node = EstimatorNode()
+        try:
+            tel: Odometry = target_state_to_odometry(
+                0, 'earth', 1.0, p * 1e290, v, np.eye(3), np.eye(3), TB
+            )
+            node._on_telemetry(tel)
+            fix: PoseWithCovarianceStamped = fix_to_msg('earth', 1.0, p, np.eye(3) * 1e-300, TB)
+            node._on_fix(fix)
+            assert node.counts['invalid_telemetry'] == 1 and node.counts['invalid_fix'] == 1
+            assert node.buffer.sizes()['telemetry'] == 0
+        finally:
+            node.destroy_node()

@@ -352,7 +352,7 @@ class EstimatorNode(StationInputs):
         if ns is None:
             return
         try:
-            s = odometry_to_target_state(msg, self._timebase(ns))
+            s = odometry_to_target_state(msg, self._timebase(ns), check=True)
         except ValueError as exc:
             self._reject('invalid_telemetry', f'telemetry rejected: {exc}')
             return

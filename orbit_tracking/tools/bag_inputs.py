@@ -269,7 +269,12 @@ def bag_inputs(
                 with_state.add(st.station_id)
                 yield BagInput('station_state', st)
             elif topic == 'telemetry/state':
-                yield BagInput('telemetry', odometry_to_target_state(m.msg, tb))
+                try:
+                    tel = odometry_to_target_state(m.msg, tb, check=True)
+                except ValueError:
+                    counts['invalid_telemetry'] += 1
+                    continue
+                yield BagInput('telemetry', tel)
             elif topic == 'triangulation/fixes':
                 try:
                     yield BagInput('fix', msg_to_fix(m.msg, tb))

@@ -34,11 +34,14 @@ from numpy.typing import NDArray
 
 __all__ = [
     'MAX_POINTS',
+    'MAX_POSITION_M',
+    'MAX_SPEED_MPS',
     'MAX_TIME_OFFSET_S',
     'SIGMA_LIMITS',
     'TargetLimit',
     'VALUE_LIMITS',
     'implausible_rows',
+    'state_problem',
 ]
 
 FloatArray = NDArray[np.float64]
@@ -71,6 +74,15 @@ an hour of epochs in one message (store and forward after a link outage), not mo
 
 MAX_POINTS = 100_000
 """Largest number of points in one measurement message."""
+
+MAX_POSITION_M = 1e9
+"""Largest distance [m] of a state (station, telemetry, fix) from the world frame's
+origin, whichever world frame (ECEF, ECI, a local one) is used."""
+
+MAX_SPEED_MPS = 1e5
+"""Largest speed [m/s] of a state."""
+
+_STATE_SIGMA = {'position': (1e-6, 1e7), 'velocity': (1e-6, 1e5)}
 
 
 def implausible_rows(
@@ -134,3 +146,36 @@ class TargetLimit:
         room = max(self.max_targets - len(self.known), 0)
         self.known.update(new[:room])
         return np.isin(arr, list(self.known))
+
+
+def state_problem(
+    position: FloatArray,
+    velocity: FloatArray | None = None,
+    position_var: FloatArray | None = None,
+    velocity_var: FloatArray | None = None,
+) -> str | None:
+    """What is implausible about a state (position [m], velocity [m/s], the variances of
+    their components [m^2], [m^2/s^2]), or None.
+
+    Limits: :data:`MAX_POSITION_M`, :data:`MAX_SPEED_MPS`, and standard deviations within
+    [1e-6, 1e7] m and [1e-6, 1e5] m/s (a variance that was not filled in, 0 or -1, fails).
+    """
+    checks: list[tuple[str, FloatArray | None, float]] = [
+        ('position', position, MAX_POSITION_M),
+        ('velocity', velocity, MAX_SPEED_MPS),
+    ]
+    for name, vec, limit in checks:
+        if vec is None:
+            continue
+        a = np.abs(np.asarray(vec, dtype=np.float64))
+        size = float(np.linalg.norm(a)) if np.all(a <= limit) else math.inf  # no overflow
+        if not size <= limit:
+            return f'{name} of magnitude {size:g} beyond {limit:g}'
+    for name, var in (('position', position_var), ('velocity', velocity_var)):
+        if var is None:
+            continue
+        lo, hi = _STATE_SIGMA[name]
+        v = np.asarray(var, dtype=np.float64)
+        if not np.all((v >= lo * lo) & (v <= hi * hi)):
+            return f'{name} variances {v.tolist()} outside [{lo * lo:g}, {hi * hi:g}]'
+    return None

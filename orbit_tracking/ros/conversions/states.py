@@ -20,6 +20,7 @@ from nav_msgs.msg import Odometry
 from numpy.typing import NDArray
 
 from orbit_tracking.core import frames
+from orbit_tracking.core.models.limits import state_problem
 from orbit_tracking.ros.conversions._common import FloatArray
 from orbit_tracking.ros.conversions.time import TimeBase
 
@@ -93,6 +94,9 @@ def odometry_to_station_state(msg: Odometry, timebase: TimeBase) -> StationState
     w = _vector(msg.twist.twist.angular)
     if not (np.all(np.isfinite(p)) and np.all(np.isfinite(v))):
         raise ValueError(f'station state of {msg.child_frame_id!r} has non-finite values')
+    problem = state_problem(p, v)
+    if problem:
+        raise ValueError(f'station state of {msg.child_frame_id!r}: {problem}')
     if not msg.child_frame_id:
         raise ValueError('station state has an empty child_frame_id (station id)')
     return StationStateSample(
@@ -150,14 +154,24 @@ def target_state_to_odometry(
     return msg
 
 
-def odometry_to_target_state(msg: Odometry, timebase: TimeBase) -> TargetStateSample:
+def odometry_to_target_state(
+    msg: Odometry, timebase: TimeBase, check: bool = False
+) -> TargetStateSample:
+    """Decode a target state. With ``check`` (data from the wire: telemetry), raise
+    ``ValueError`` on an implausible position, velocity or variance
+    (:func:`~orbit_tracking.core.models.limits.state_problem`)."""
     pc = np.asarray(msg.pose.covariance, dtype=np.float64).reshape(6, 6)[:3, :3]
     vc = np.asarray(msg.twist.covariance, dtype=np.float64).reshape(6, 6)[:3, :3]
+    p, v = _point(msg.pose.pose.position), _vector(msg.twist.twist.linear)
+    if check:
+        problem = state_problem(p, v, np.diag(pc), np.diag(vc))
+        if problem:
+            raise ValueError(f'{msg.child_frame_id}: {problem}')
     return TargetStateSample(
         target_id_from_frame(msg.child_frame_id),
         timebase.to_seconds(msg.header.stamp),
-        _point(msg.pose.pose.position),
-        _vector(msg.twist.twist.linear),
+        p,
+        v,
         pc,
         vc,
     )
@@ -179,9 +193,14 @@ def fix_to_msg(
 def msg_to_fix(
     msg: PoseWithCovarianceStamped, timebase: TimeBase
 ) -> tuple[float, FloatArray, FloatArray]:
-    """``(t, position (3,), covariance (3, 3))`` of a fix."""
+    """``(t, position (3,), covariance (3, 3))`` of a fix; ``ValueError`` on an implausible
+    position or variance (:func:`~orbit_tracking.core.models.limits.state_problem`)."""
     cov = np.asarray(msg.pose.covariance, dtype=np.float64).reshape(6, 6)[:3, :3]
-    return timebase.to_seconds(msg.header.stamp), _point(msg.pose.pose.position), cov
+    p = _point(msg.pose.pose.position)
+    problem = state_problem(p, position_var=np.diag(cov))
+    if problem:
+        raise ValueError(f'fix: {problem}')
+    return timebase.to_seconds(msg.header.stamp), p, cov
 
 
 def _cov6(cov3: FloatArray) -> NDArray[np.float64]:
