@@ -24,6 +24,7 @@ ROSDEP_PYTHON_MODULES = {
     'python3-scipy': 'scipy',
     'python3-yaml': 'yaml',
     'python3-matplotlib': 'matplotlib',
+    'python3-cryptography': 'cryptography',
     'python3-pytest': 'pytest',
 }
 # ROS packages providing Python modules of the same name (not interface packages).

@@ -21,6 +21,8 @@ Subcommands::
                                                       estimate or demo output folder
     orbit-tracking bench [--suite S] [--seeds N] [--write-docs]
                                                       accuracy vs truth and CRB, wall time
+    orbit-tracking security init|env|check DIR ...    TLS credentials and Fast DDS profiles
+                                                      that keep strangers off the topics
 
 Run ``orbit-tracking <command> --help`` for the options of each.
 """
@@ -32,7 +34,7 @@ import sys
 from collections.abc import Sequence
 
 from orbit_tracking.core.errors import OrbitTrackingError
-from orbit_tracking.tools.commands import bench, data, demo, offline
+from orbit_tracking.tools.commands import bench, data, demo, offline, security
 
 __all__ = ['build_parser', 'main']
 
@@ -54,6 +56,7 @@ def build_parser() -> argparse.ArgumentParser:
         demo.add_demo,
         bench.add_bench,
         offline.add_report,
+        security.add_security,
     ):
         add(sub)
     return p
