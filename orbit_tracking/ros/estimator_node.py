@@ -14,7 +14,9 @@ Publishes each window's fitted states with covariance on ``estimator/window_stat
 (``sensor_msgs/PointCloud2``, internal: see docs/CONTRACT.md) and ``/diagnostics``. With
 station biases declared (``bias_file``: ``auto`` or a YAML file) they are estimated in every
 window and published on ``trajectory/biases`` (``diagnostic_msgs/DiagnosticArray``,
-transient local, one status per station).
+transient local, one status per station). With ``journal_dir`` set, every input it accepts
+is journaled, and a node killed at any moment resumes from the journal when started again
+(:mod:`orbit_tracking.ros.journal`).
 
 Example::
 

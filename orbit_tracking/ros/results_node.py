@@ -16,6 +16,10 @@ final (no later window can change it; the rule is in
 States are in the world frame of the windows, or with ``output_frame:=launch`` in the
 launch frame (``launch_site`` or the ``scenario``'s launch point).
 
+When the estimator's publisher goes away (it exits), the states held wait
+``estimator_gone_grace`` seconds for it to come back (a restart), so that its next window
+hands over from the last one as usual.
+
 Example::
 
     ros2 run orbit_tracking results --ros-args -p output_frame:=launch -p scenario:=seed000_s1
@@ -440,7 +444,7 @@ class ResultsNode(Node):
                 )
             self.gone_since = None
             self.had_publisher = True
-        elif self.had_publisher and self.gone_since is None:
+        elif (self.had_publisher or self.counts['windows_received']) and self.gone_since is None:
             self.gone_since = now
             self.counts['estimator_gone'] += 1
             if not self.flushed:

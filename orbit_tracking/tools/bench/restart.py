@@ -1,0 +1,596 @@
+"""Restart loss of the estimator node over real DDS (the fault benchmark's restart case,
+and ``test/test_restart.py``).
+
+A bag is replayed (``orbit-tracking replay``) through the ``triangulation``, ``estimator``
+and ``results`` nodes, each its own process started as the main job starts them (their
+``config/<node>.yaml`` plus :data:`RESTART_WINDOWS`), twice: a clean pass, and a pass in
+which the estimator is killed (SIGKILL by default) a while after the first window reached
+this process, then started again with the same command line ``restart_after`` seconds
+later. :func:`measure_restart_loss` compares the ``trajectory/states`` the two passes
+published: the states the clean pass has and the killed pass lost, states published twice,
+the largest position difference (also in units of the killed pass's own sigma), and whether
+the results node blended across the restart seam as it blends any hand-over (its states
+equal the stitch of the windows it received).
+
+Messages the player sends while no estimator process runs reach no estimator: with the
+journal the restarted node has everything it had accepted before the kill, and the windows
+span that short gap in the data as they span any gap.
+
+The nodes run in the root namespace (the bag's topic names are absolute) on their own DDS
+domain (``domain_id``; default ``1 + pid % 100``) with ``ROS_AUTOMATIC_DISCOVERY_RANGE`` set
+to ``LOCALHOST`` here and in the children, so that a benchmark never talks to a running
+system.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = [
+    'PassResult',
+    'RESTART_BAG',
+    'RESTART_WINDOWS',
+    'compare_passes',
+    'measure_restart_loss',
+    'run_pass',
+]
+
+RESTART_BAG = 'seed000_s1_20_50'
+"""Default bag (``test/data/bags`` of the source tree): 30 s of 13 fixed stations and
+telemetry, an incomplete segment at 45-50 s."""
+
+RESTART_WINDOWS: Mapping[str, object] = {
+    'window_length': 12.0,
+    'window_overlap': 4.0,
+    'latency': 2.0,
+    'output_step': 0.1,
+}
+"""The estimator's windows: four over 30 s, three hand-overs (as the regression test)."""
+
+_PROCESSING = ('triangulation', 'estimator', 'results')
+_OUTPUT_STEP = 0.1
+
+
+@dataclass
+class PassResult:
+    """What one pass published, as received here.
+
+    Attributes
+    ----------
+    stamps : ndarray, shape (n,)
+        ``trajectory/states`` stamps [ns], in arrival order (a repeat stays a repeat).
+    state : ndarray, shape (n, 6)
+        Position [m] and velocity [m/s].
+    sigma : ndarray, shape (n, 6)
+        Their published 1-sigma.
+    windows : list of WindowStates
+        ``estimator/window_states`` in arrival order.
+    epoch_ns : int
+        Stamp of the nodes' time 0.
+    results, estimator : dict
+        The last ``results: trajectory`` and ``estimator: windows`` diagnostics values.
+    windows_before_kill : int
+        Windows received here before the kill.
+    kill_data_s, ready_data_s : float
+        Newest measurement time [s] received here when the estimator was killed and when
+        its new process reported its first measurement message (nan without a kill).
+    restart_wall_s : float
+        Wall seconds from the kill to then (nan without a kill).
+    logs : dict
+        Each process's output (``estimator`` and, after a kill, ``estimator_2``).
+    wall_s : float
+    """
+
+    stamps: np.ndarray
+    state: np.ndarray
+    sigma: np.ndarray
+    windows: list[Any]
+    epoch_ns: int
+    results: dict[str, str] = field(default_factory=dict)
+    estimator: dict[str, str] = field(default_factory=dict)
+    windows_before_kill: int = 0
+    kill_data_s: float = math.nan
+    ready_data_s: float = math.nan
+    restart_wall_s: float = math.nan
+    logs: dict[str, str] = field(default_factory=dict)
+    wall_s: float = 0.0
+
+    def times(self) -> np.ndarray:
+        """Stamps as seconds after the epoch."""
+        return (self.stamps - self.epoch_ns) * 1e-9
+
+
+def _bag_facts(bag: Path) -> tuple[int, float, str, bool]:
+    """The bag's epoch [ns], newest measurement time [s after it], one measurement topic,
+    and whether it has telemetry."""
+    from orbit_tracking.ros.bag import bag_custom_data, read_bag
+    from orbit_tracking.ros.conversions import TimeBase, cloud_to_measurements
+
+    epoch = TimeBase.from_seconds(float(bag_custom_data(bag)['orbit_tracking.epoch']))
+    newest, topic, telemetry = -math.inf, '', False
+    for m in read_bag(bag):
+        if m.topic.startswith('/stations/') and m.topic.endswith('/measurements'):
+            topic = topic or m.topic
+            newest = max(newest, float(cloud_to_measurements(m.msg, epoch).time.max()))
+        telemetry = telemetry or m.topic == '/telemetry/state'
+    return epoch.ref_ns, newest, topic, telemetry
+
+
+def _checkpointed(journal_dir: Path, t1: float) -> bool:
+    """Whether the estimator's journal (read, not locked) holds a checkpoint of a window
+    ending at ``t1`` or later."""
+    import json
+
+    from orbit_tracking.core.data.journal import scan_journal
+
+    for path in journal_dir.rglob('*.journal'):
+        states = [r for r in scan_journal(path).records if r.kind == 'state']
+        last = json.loads(states[-1].data).get('last') if states else None
+        if last is not None and last[1] >= t1 - 1e-9:
+            return True
+    return False
+
+
+def _start(cmd: Sequence[str], log: Path, env: Mapping[str, str]) -> subprocess.Popen[bytes]:
+    with open(log, 'wb') as fh:
+        return subprocess.Popen(
+            list(cmd), env=dict(env), stdout=fh, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL
+        )
+
+
+def run_pass(
+    bag: str | Path,
+    work_dir: str | Path,
+    *,
+    rate: float = 1.0,
+    journal: bool = True,
+    kill_after_windows: int | None = None,
+    kill_at: float | None = None,
+    kill_after_checkpoint: bool = False,
+    kill_delay: float = 0.0,
+    restart_after: float = 1.0,
+    kill_signal: int = signal.SIGKILL,
+    estimator_params: Mapping[str, object] | None = None,
+    results_params: Mapping[str, object] | None = None,
+    domain_id: int | None = None,
+    timeout: float = 300.0,
+    progress: Callable[[str], None] | None = None,
+) -> PassResult:
+    """Replay ``bag`` through the three nodes and collect what they publish.
+
+    Parameters
+    ----------
+    bag : path-like
+        rosbag2 folder with ``orbit_tracking.epoch`` in its metadata.
+    work_dir : path-like
+        Logs and the estimator's journal (``<work_dir>/journal``) go here.
+    rate : float
+        Replay speed.
+    journal : bool
+        Run the estimator with ``journal_dir`` (else without a journal).
+    kill_after_windows : int, optional
+        Kill the estimator ``kill_delay`` wall seconds after this many windows arrived
+        here, and start it again ``restart_after`` seconds later; None: a clean pass.
+    kill_at : float, optional
+        Wait, before the delay, until the newest measurement received here is at least
+        this data time [s after the bag's epoch] as well.
+    kill_after_checkpoint : bool
+        Wait, before the delay, until the estimator's journal holds the checkpoint of the
+        last of those windows (it is written once the readers acknowledged the window):
+        the restart resumes the window schedule. Else the kill may come first, and the
+        window is solved again after the restart.
+    kill_signal : int
+        ``signal.SIGKILL`` (default) or ``signal.SIGTERM``.
+    estimator_params, results_params : mapping, optional
+        Parameters on top of the defaults of this module.
+    domain_id : int, optional
+        DDS domain of the pass (default ``1 + pid % 100``).
+
+    Raises
+    ------
+    RuntimeError
+        A node exited on its own, or the pass did not end within ``timeout`` seconds.
+    """
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from nav_msgs.msg import Odometry
+    from rclpy.executors import SingleThreadedExecutor
+    from sensor_msgs.msg import PointCloud2
+    from std_srvs.srv import Trigger
+
+    from orbit_tracking.core.time import format_stamp
+    from orbit_tracking.ros import qos
+    from orbit_tracking.ros.conversions import (
+        TimeBase,
+        cloud_to_window_states,
+        odometry_to_target_state,
+        stamp_ns,
+    )
+    from orbit_tracking.tools.live import NODES, _env, _stop, node_command, package_location
+
+    bag = Path(bag)
+    work = Path(work_dir)
+    work.mkdir(parents=True, exist_ok=True)
+    say = progress or (lambda _text: None)
+    epoch_ns, newest, probe_topic, has_telemetry = _bag_facts(bag)
+    tb = TimeBase(epoch_ns)
+    domain = int(domain_id) if domain_id is not None else 1 + os.getpid() % 100
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    where = package_location()
+    env = {**_env(where), 'ROS_DOMAIN_ID': str(domain)}  # the source tree on PYTHONPATH
+    ref = {'time_reference': tb.ref_ns * 1e-9}
+    overrides: dict[str, dict[str, object]] = {
+        'triangulation': dict(ref),
+        'estimator': {
+            **ref,
+            **RESTART_WINDOWS,
+            # no journal: the file's '' (an empty -p value does not parse)
+            **({'journal_dir': str(work / 'journal')} if journal else {}),
+            **(estimator_params or {}),
+        },
+        # the tail is flushed on request (~/flush) once the last window is in
+        'results': {**ref, 'flush_after': 3600.0, **(results_params or {})},
+    }
+    spec = {s.executable: s for s in NODES}
+    commands = {exe: node_command(spec[exe], where, overrides[exe]) for exe in _PROCESSING}
+
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=domain)
+    node = rclpy.create_node('orbit_tracking_bench_restart', context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    states: list[Any] = []
+    windows: list[Any] = []
+    results: dict[str, str] = {}
+    estimator: dict[str, str] = {}
+    data_now = [-math.inf]
+
+    def on_diag(msg: DiagnosticArray) -> None:
+        for st in msg.status:
+            if st.name == 'results: trajectory':
+                results.clear()
+                results.update({kv.key: kv.value for kv in st.values})
+            elif st.name == 'estimator: windows':
+                estimator.clear()
+                estimator.update({kv.key: kv.value for kv in st.values})
+
+    def on_probe(msg: PointCloud2) -> None:
+        data_now[0] = max(data_now[0], (stamp_ns(msg.header.stamp) - epoch_ns) * 1e-9)
+
+    node.create_subscription(Odometry, '/trajectory/states', states.append, qos.MEASUREMENTS_SUB)
+    node.create_subscription(
+        PointCloud2, '/estimator/window_states', windows.append, qos.MEASUREMENTS_SUB
+    )
+    node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, qos.DIAGNOSTICS)
+    node.create_subscription(PointCloud2, probe_topic, on_probe, qos.MEASUREMENTS_SUB)
+    if has_telemetry:  # a second reader, so that the player's wait covers telemetry too
+        node.create_subscription(
+            Odometry, '/telemetry/state', lambda _m: None, qos.MEASUREMENTS_SUB
+        )
+    client = node.create_client(Trigger, '/results/flush')
+    procs: dict[str, subprocess.Popen[bytes]] = {}
+    logs: dict[str, Path] = {}
+    t_start = time.monotonic()
+    out = PassResult(np.zeros(0, np.int64), np.zeros((0, 6)), np.zeros((0, 6)), [], epoch_ns)
+
+    def start(label: str, cmd: Sequence[str]) -> None:
+        logs[label] = work / f'{label}.log'
+        procs[label] = _start(cmd, logs[label], env)
+
+    def spin_until(pred: Callable[[], bool], limit: float, what: str) -> None:
+        end = time.monotonic() + limit
+        while not pred():
+            dead = {
+                k: p.returncode
+                for k, p in procs.items()
+                if k not in ('replay', 'estimator_killed') and p.poll() is not None
+            }
+            if dead:
+                raise RuntimeError(f'node process(es) exited {dead} while waiting for {what}')
+            if time.monotonic() > end:
+                raise RuntimeError(f'timed out after {limit:.0f} s waiting for {what}')
+            executor.spin_once(timeout_sec=0.05)
+
+    try:
+        for exe in _PROCESSING:
+            start(exe, commands[exe])
+        spin_until(
+            lambda: (
+                node.count_publishers('/estimator/window_states') >= 1
+                and node.count_subscribers('/estimator/window_states') >= 2
+                and node.count_publishers('/trajectory/states') >= 1
+                and node.count_publishers('/triangulation/fixes') >= 1
+            ),
+            90,
+            'the nodes to come up',
+        )
+        say(
+            f'nodes up after {time.monotonic() - t_start:.1f} s; replaying {bag.name} at {rate:g}x'
+        )
+        start(
+            'replay',
+            [sys.executable, '-m', 'orbit_tracking.tools.cli', 'replay', str(bag)]
+            + ['--rate', str(rate), '--topics', '/stations/*', '/telemetry/state']
+            + ['--wait-for-subscribers', '2', '--wait-timeout', '90'],
+        )
+        deadline = t_start + timeout
+        if kill_after_windows is not None:
+            spin_until(
+                lambda: len(windows) >= kill_after_windows,
+                max(deadline - time.monotonic(), 1.0),
+                f'{kill_after_windows} window(s) before the kill',
+            )
+            if kill_at is not None:
+                spin_until(
+                    lambda: data_now[0] >= kill_at,
+                    max(deadline - time.monotonic(), 1.0),
+                    f'data time {kill_at:g} s before the kill',
+                )
+            if kill_after_checkpoint:
+                t1 = cloud_to_window_states(windows[kill_after_windows - 1], tb).t1
+                spin_until(
+                    lambda: _checkpointed(work / 'journal', t1),
+                    30,
+                    f'the journal checkpoint of the window ending at {t1:.3f} s',
+                )
+            end = time.monotonic() + kill_delay
+            spin_until(lambda: time.monotonic() >= end, kill_delay + 1.0, 'the kill delay')
+            out.windows_before_kill = len(windows)
+            procs['estimator'].send_signal(kill_signal)
+            procs['estimator'].wait(10)
+            killed_at = time.monotonic()
+            out.kill_data_s = data_now[0]
+            procs['estimator_killed'] = procs.pop('estimator')
+            say(
+                f'estimator killed ({signal.Signals(kill_signal).name}) at data time '
+                f'{out.kill_data_s:.2f} s, after {len(windows)} window(s)'
+            )
+            end = time.monotonic() + restart_after
+            spin_until(lambda: time.monotonic() >= end, restart_after + 1.0, 'the restart delay')
+            start('estimator_2', commands['estimator'])
+            spin_until(
+                lambda: node.count_publishers('/estimator/window_states') >= 1,
+                60,
+                'the restarted estimator',
+            )
+            estimator.clear()
+            spin_until(
+                lambda: float(estimator.get('measurement_messages', 0)) > 0,
+                60,
+                'the first measurement message at the restarted estimator',
+            )
+            out.restart_wall_s = time.monotonic() - killed_at
+            out.ready_data_s = data_now[0]
+            say(
+                f'estimator back {out.restart_wall_s:.1f} s after the kill (its first '
+                f'measurement message), at data time {out.ready_data_s:.2f} s'
+            )
+        last_end = [-math.inf]
+
+        def ended() -> bool:
+            for m in windows[len(out.windows) :]:
+                out.windows.append(cloud_to_window_states(m, tb))
+                last_end[0] = max(last_end[0], out.windows[-1].t1)
+            return procs['replay'].poll() is not None and last_end[0] >= newest - 1e-6
+
+        spin_until(
+            ended,
+            max(deadline - time.monotonic(), 1.0),
+            f'the replay to end and the last window (cut at {newest:.3f} s)',
+        )
+        # the results node must have taken the last window before the tail is flushed
+        last_stamp = format_stamp(epoch_ns, last_end[0])
+        spin_until(
+            lambda: results.get('last_window_end') == last_stamp,
+            30,
+            f'the results node to take the last window (ending {last_stamp})',
+        )
+        if not client.wait_for_service(timeout_sec=20.0):
+            raise RuntimeError('the results node offers no ~/flush')
+        future = client.call_async(Trigger.Request())
+        spin_until(future.done, 30, 'the results ~/flush response')
+        quiet = [time.monotonic(), len(states)]
+
+        def settled() -> bool:
+            if len(states) != quiet[1]:
+                quiet[:] = [time.monotonic(), len(states)]
+            return time.monotonic() - quiet[0] > 1.5
+
+        spin_until(settled, 30, 'the last states')
+    finally:
+        for proc in procs.values():
+            _stop(proc)
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+    out.wall_s = time.monotonic() - t_start
+    out.logs = {k: p.read_text(errors='replace') for k, p in logs.items()}
+    out.results = dict(results)
+    out.estimator = dict(estimator)
+    samples = [odometry_to_target_state(m, tb) for m in states]
+    out.stamps = np.array([stamp_ns(m.header.stamp) for m in states], dtype=np.int64)
+    out.state = np.array([np.concatenate([s.position, s.velocity]) for s in samples]).reshape(
+        -1, 6
+    )
+    out.sigma = np.sqrt(
+        np.array(
+            [np.concatenate([np.diag(s.position_cov), np.diag(s.velocity_cov)]) for s in samples]
+        ).reshape(-1, 6)
+    )
+    return out
+
+
+def _spans(t: np.ndarray, step: float = _OUTPUT_STEP) -> list[list[float]]:
+    """Sorted times as ``[first, last]`` runs of consecutive output times."""
+    out: list[list[float]] = []
+    for v in np.sort(t):
+        if out and v - out[-1][1] <= 1.5 * step:
+            out[-1][1] = float(v)
+        else:
+            out.append([float(v), float(v)])
+    return [[round(a, 3), round(b, 3)] for a, b in out]
+
+
+def _stitched(run: PassResult) -> tuple[np.ndarray, np.ndarray]:
+    """The states the results node should publish from the windows this pass received:
+    the core stitcher fed the same windows (a repeated window dropped, as the node drops
+    it), then flushed."""
+    from orbit_tracking.core.estimation.stitcher import TrajectoryStitcher, split_window
+
+    st = TrajectoryStitcher()
+    final = []
+    for w in run.windows:
+        if w.t1 > st.last_end + 1e-6:
+            final += st.add(split_window(w.t0, w.t1, w.time, w.target_id, w.state, w.covariance))
+    final += st.flush()
+    keys = [np.round(fs.time * 1e9).astype(np.int64) + run.epoch_ns for fs in final]
+    xs = [fs.state for fs in final]
+    if not keys:
+        return np.zeros(0, np.int64), np.zeros((0, 6))
+    return np.concatenate(keys), np.vstack(xs)
+
+
+def compare_passes(clean: PassResult, killed: PassResult) -> dict[str, Any]:
+    """What the killed pass lost against the clean one (see the module docstring)."""
+    c_keys, c_idx = np.unique(clean.stamps, return_index=True)
+    k_keys, k_idx = np.unique(killed.stamps, return_index=True)
+    lost = np.setdiff1d(c_keys, k_keys)
+    extra = np.setdiff1d(k_keys, c_keys)
+    common, ci, ki = np.intersect1d(c_keys, k_keys, return_indices=True)
+    dx = killed.state[k_idx[ki]] - clean.state[c_idx[ci]]
+    sig = killed.sigma[k_idx[ki]]
+    dpos = np.linalg.norm(dx[:, :3], axis=1) if common.size else np.zeros(0)
+    z = np.abs(dx) / sig if common.size else np.zeros((0, 6))
+    s_keys, s_state = _stitched(killed)
+    s_map = {int(k): i for i, k in enumerate(s_keys)}
+    seam = [
+        float(np.max(np.abs(killed.state[i] - s_state[s_map[int(k)]])))
+        for i, k in enumerate(killed.stamps)
+        if int(k) in s_map
+    ]
+    t_common = (common - clean.epoch_ns) * 1e-9
+    worst = int(np.argmax(dpos)) if dpos.size else -1
+    return {
+        'states_clean': int(c_keys.size),
+        'states_published': int(k_keys.size),
+        'lost': int(lost.size),
+        'lost_spans_s': _spans((lost - clean.epoch_ns) * 1e-9),
+        'extra': int(extra.size),
+        'published_twice': int(killed.stamps.size - k_keys.size),
+        'max_position_diff_m': float(dpos.max()) if dpos.size else math.nan,
+        'max_position_diff_at_s': round(float(t_common[worst]), 3) if worst >= 0 else math.nan,
+        'max_velocity_diff_mps': (
+            float(np.linalg.norm(dx[:, 3:], axis=1).max()) if common.size else math.nan
+        ),
+        'max_diff_over_sigma': float(z.max()) if z.size else math.nan,
+        'stitch_mismatch_m': float(max(seam)) if seam else math.nan,
+        'stitch_unmatched': int(killed.stamps.size - len(seam)),
+    }
+
+
+def measure_restart_loss(
+    bag: str | Path | None = None,
+    *,
+    rate: float = 1.0,
+    journal: bool = True,
+    kill_after_windows: int = 1,
+    kill_at: float | None = None,
+    kill_after_checkpoint: bool = True,
+    kill_delay: float = 0.0,
+    restart_after: float = 1.0,
+    kill_signal: int = signal.SIGKILL,
+    clean: PassResult | None = None,
+    clean_rate: float = 10.0,
+    estimator_params: Mapping[str, object] | None = None,
+    results_params: Mapping[str, object] | None = None,
+    work_dir: str | Path | None = None,
+    domain_id: int | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+    """States lost to a kill and restart of the estimator mid-pass.
+
+    Runs a clean pass (at ``clean_rate``: the results do not depend on the replay speed;
+    or takes ``clean``), then a pass at ``rate`` in which the estimator is killed once
+    ``kill_after_windows`` windows have arrived, the data have reached ``kill_at`` and (with
+    ``kill_after_checkpoint`` and the journal) the journal holds the last window's
+    checkpoint, plus ``kill_delay`` s, and started again ``restart_after`` s later; then
+    compares them (:func:`compare_passes`). See :func:`run_pass` for the parameters.
+
+    Returns
+    -------
+    dict
+        The comparison, plus ``bag``, ``rate``, ``journal``, ``signal``, ``kill_data_s``,
+        ``ready_data_s`` (data time when the new process was up), ``restart_wall_s``,
+        ``windows_clean``, ``windows_killed``, the results node's ``flushes``,
+        ``states_already_final``, ``estimator_gone`` and ``duplicate_windows``, the
+        restarted estimator's journal line and each pass's wall time.
+    """
+    if bag is None:
+        from orbit_tracking.tools.live import package_location
+
+        root = package_location().source_root
+        if root is None:
+            raise FileNotFoundError('no source tree with test/data/bags: give the bag')
+        bag = root / 'test' / 'data' / 'bags' / RESTART_BAG
+    bag = Path(bag)
+    with tempfile.TemporaryDirectory(prefix='orbit_tracking_restart_') as tmp:
+        work = Path(work_dir) if work_dir is not None else Path(tmp)
+        common: dict[str, Any] = {
+            'estimator_params': estimator_params,
+            'results_params': results_params,
+            'domain_id': domain_id,
+            'progress': progress,
+        }
+        if clean is None:
+            clean = run_pass(bag, work / 'clean', rate=clean_rate, journal=journal, **common)
+        killed = run_pass(
+            bag,
+            work / 'killed',
+            rate=rate,
+            journal=journal,
+            kill_after_windows=kill_after_windows,
+            kill_at=kill_at,
+            kill_after_checkpoint=kill_after_checkpoint and journal,
+            kill_delay=kill_delay,
+            restart_after=restart_after,
+            kill_signal=kill_signal,
+            **common,
+        )
+    out: dict[str, Any] = {
+        'bag': bag.name,
+        'rate': rate,
+        'journal': journal,
+        'signal': signal.Signals(kill_signal).name,
+        **compare_passes(clean, killed),
+        'kill_data_s': round(killed.kill_data_s, 3),
+        'ready_data_s': round(killed.ready_data_s, 3),
+        'restart_wall_s': round(killed.restart_wall_s, 2),
+        'windows_clean': len(clean.windows),
+        'windows_killed': len(killed.windows),
+    }
+    for key in ('flushes', 'states_already_final', 'estimator_gone'):
+        out[key] = killed.results.get(key, '')
+    out['duplicate_windows'] = killed.results.get('rejected_duplicate_window', '0')
+    out['journal_log'] = next(
+        (
+            line.strip()
+            for line in killed.logs.get('estimator_2', '').splitlines()
+            if 'journal' in line and 'replayed' in line
+        ),
+        '',
+    )
+    out['wall_s'] = {'clean': round(clean.wall_s, 1), 'killed': round(killed.wall_s, 1)}
+    out['passes'] = {'clean': clean, 'killed': killed}
+    return out
