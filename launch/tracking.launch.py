@@ -7,6 +7,11 @@ parameter file of ``config/``. The same nodes and files as ``orbit-tracking demo
 
 Record the outputs with ``ros2 bag record`` (or ``orbit-tracking record``); the final
 trajectory is on ``trajectory/states`` and ``trajectory/path``.
+
+The processing nodes are respawned one second after they die. With
+``journal_dir:=/var/lib/orbit_tracking`` (any directory this run alone uses) the estimator
+journals its inputs there and a respawned estimator loses nothing (docs/NODES.md, "Restart
+without loss").
 """
 
 import os
@@ -23,6 +28,7 @@ def generate_launch_description() -> LaunchDescription:
     config = os.path.join(get_package_share_directory('orbit_tracking'), 'config')
     scenario = LaunchConfiguration('scenario')
     rate_factor = ParameterValue(LaunchConfiguration('rate_factor'), value_type=float)
+    journal_dir = ParameterValue(LaunchConfiguration('journal_dir'), value_type=str)
     return LaunchDescription(
         [
             DeclareLaunchArgument(
@@ -35,6 +41,11 @@ def generate_launch_description() -> LaunchDescription:
                 default_value='1.0',
                 description='scenario seconds streamed per wall second',
             ),
+            DeclareLaunchArgument(
+                'journal_dir',
+                default_value='',
+                description="the estimator's input journal directory ('' = none)",
+            ),
             # the processing nodes first, so that they listen when the simulator streams
             Node(
                 package='orbit_tracking',
@@ -42,13 +53,20 @@ def generate_launch_description() -> LaunchDescription:
                 name='triangulation',
                 parameters=[os.path.join(config, 'triangulation.yaml')],
                 output='screen',
+                respawn=True,
+                respawn_delay=1.0,
             ),
             Node(
                 package='orbit_tracking',
                 executable='estimator',
                 name='estimator',
-                parameters=[os.path.join(config, 'estimator.yaml')],
+                parameters=[
+                    os.path.join(config, 'estimator.yaml'),
+                    {'journal_dir': journal_dir},
+                ],
                 output='screen',
+                respawn=True,
+                respawn_delay=1.0,
             ),
             Node(
                 package='orbit_tracking',
@@ -56,6 +74,8 @@ def generate_launch_description() -> LaunchDescription:
                 name='results',
                 parameters=[os.path.join(config, 'results.yaml')],
                 output='screen',
+                respawn=True,
+                respawn_delay=1.0,
             ),
             Node(
                 package='orbit_tracking',
