@@ -242,3 +242,29 @@ def test_the_estimator_counts_wild_telemetry_and_fixes_instead_of_using_them():
             assert node.buffer.sizes()['telemetry'] == 0
         finally:
             node.destroy_node()
+
+
+def test_the_estimator_never_publishes_negative_variances():
+    """A singular solve gave variances of -5.6e273: the window fails instead."""
+    import types
+
+    from orbit_tracking.core.errors import OrbitTrackingError
+    from orbit_tracking.ros.estimator_node import EstimatorNode
+
+    def states(t):
+        c = np.broadcast_to(np.eye(6), (t.size, 6, 6)).copy()
+        c[:, 2, 2] = -5.6e273
+        return np.zeros((t.size, 6)), c
+
+    sol = types.SimpleNamespace(t0=0.0, t1=1.0, states=states)
+    est = types.SimpleNamespace(t0=0.0, t1=1.0, targets={0: sol})
+    with default_context(time_reference=EPOCH_NS * 1e-9):
+        node = EstimatorNode()
+        try:
+            sent: list = []
+            node.window_pub = types.SimpleNamespace(publish=sent.append)
+            with pytest.raises(OrbitTrackingError, match='negative variances'):
+                node._publish_window(est, TB)
+            assert sent == []
+        finally:
+            node.destroy_node()

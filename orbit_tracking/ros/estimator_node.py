@@ -566,6 +566,12 @@ class EstimatorNode(StationInputs):
             if t.size == 0:
                 continue
             x, c = sol.states(t)
+            var = np.diagonal(c, axis1=1, axis2=2)
+            if not (np.all(np.isfinite(x)) and np.all(np.isfinite(c)) and np.all(var >= 0.0)):
+                raise OrbitTrackingError(
+                    f'target {tid}: the solution has non-finite states or negative variances '
+                    f'(smallest {np.nanmin(var):.3g}): not published'
+                )
             times.append(t)
             tids.append(np.full(t.size, tid, dtype=np.uint32))
             states.append(x)
