@@ -6,19 +6,22 @@ in the same words; a bag whose stations have measurements but no state says so; 
 ``triangulate`` runs to the end of a pass in which a station stops measuring (it used to
 stop there and crash with ``OverflowError``).
 
-The commands run as processes (``python -m orbit_tracking.tools.cli``); the bad bags are
-built in ``tmp_path`` from the small bags of ``test/data/bags``.
+The bad-bag matrix runs the CLI's ``main`` in this process (one real process per command
+shows the same); the other checks run ``python -m orbit_tracking.tools.cli`` as processes.
+The bad bags are built in ``tmp_path`` from the small bags of ``test/data/bags``.
 """
 
 from __future__ import annotations
 
+import contextlib
+import io
 import math
 import shutil
 import struct
 import subprocess
 import sys
+import traceback
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,6 +33,7 @@ from rosbags.rosbag2 import Reader
 
 from orbit_tracking.core.triangulation.alignment import AlignConfig, Aligner
 from orbit_tracking.ros.bag import BagWriter, bag_custom_data
+from orbit_tracking.tools.cli import main as cli_main
 from orbit_tracking.tools.triangulate import _independent_stride
 
 BAGS = ROOT / 'test' / 'data' / 'bags'
@@ -69,6 +73,22 @@ def cli(*args: str | Path, timeout: float = 120.0) -> Run:
         timeout=timeout,
     )
     return Run(proc.returncode, proc.stdout.decode(), proc.stderr.decode())
+
+
+def cli_in_process(*args: str | Path) -> Run:
+    """``orbit-tracking ARGS`` through its ``main`` in this process (the bad-bag matrix:
+    a process each would cost a second of imports per case); an exception escaping
+    ``main`` is reported as a traceback on stderr with status 1, as a process would."""
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            code = cli_main([str(a) for a in args])
+        except SystemExit as exc:
+            code = int(exc.code or 0)
+        except BaseException:
+            err.write(traceback.format_exc())
+            code = 1
+    return Run(code, out.getvalue(), err.getvalue())
 
 
 def visible_lines(text: str) -> list[str]:
@@ -300,9 +320,7 @@ def bad_bag_runs(
             'replay': ['replay', bag, '--rate', '1000'],
         }[command]
         jobs[(name, command)] = (args, out)
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        futures = {key: pool.submit(cli, *args) for key, (args, _) in jobs.items()}
-        return {key: (f.result(), jobs[key][1]) for key, f in futures.items()}
+    return {key: (cli_in_process(*args), out) for key, (args, out) in jobs.items()}
 
 
 @pytest.mark.parametrize(('bad', 'command'), CASES)
@@ -312,6 +330,24 @@ def test_a_bad_bag_is_one_line_and_exit_status_2(bad_bag_runs, bad, command):
     assert run.code == 2, line
     assert BAD_BAGS[bad][1] in line
     assert not out.exists()  # nothing written from a bad bag
+
+
+@pytest.mark.parametrize('command', BAG_COMMANDS)
+def test_a_bad_bag_ends_the_process_with_one_line_and_exit_status_2(
+    tmp_path, estimate_folder, command
+):
+    """The same as a real process (the matrix above runs ``main`` in this process)."""
+    bag = _truncated_mcap(tmp_path)
+    out = tmp_path / 'out'
+    args: list[str | Path] = {
+        'triangulate': ['triangulate', bag, '--out', out, '--quiet'],
+        'estimate': ['estimate', bag, '--out', out, '--quiet'],
+        'report': ['report', estimate_folder, '--bag', bag, '--out', out],
+        'replay': ['replay', bag, '--rate', '1000'],
+    }[command]
+    run = cli(*args)
+    line = run.error_line(command)
+    assert run.code == 2 and 'truncated' in line and not out.exists()
 
 
 def test_a_bag_failing_half_way_leaves_one_line_on_the_terminal(tmp_path):
