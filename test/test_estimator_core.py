@@ -328,7 +328,22 @@ def test_estimate_raises_on_a_window_without_measurements():
 def test_estimate_raises_without_a_rough_trajectory():
     obs, _ = _short_observations(1)
     with pytest.raises(EstimationError, match='target 0: no telemetry, fixes or previous'):
+        estimate(obs.without_telemetry(), 0.0, 20.0, target_ids=[0])
+    with pytest.raises(EstimationError, match=r'no target .* to start from \(targets \[0\]\)'):
         estimate(obs.without_telemetry(), 0.0, 20.0)
+
+
+def test_a_stray_target_without_a_start_is_left_out_not_failing_the_window():
+    """Issue 13: points of an unknown target id (no telemetry, no fixes) failed the whole
+    window, losing the real target's states."""
+    obs, _ = _short_observations(1)
+    st = _station(obs, 'cw03')
+    tids = st.table.target_id.copy()
+    tids[10] = 0xFFFFFFFF
+    stray = StationObservations(dataclasses.replace(st.table, target_id=tids), st.pose)
+    est = estimate(_replace_station(obs, 'cw03', stray), 0.0, 20.0)
+    assert est.success and set(est.targets) == {0}
+    assert f'target(s) [{0xFFFFFFFF}] left out' in est.message
 
 
 def test_estimate_raises_on_an_empty_span():

@@ -112,7 +112,10 @@ def estimate(
     Raises
     ------
     EstimationError
-        No measurements, or no rough trajectory to start from.
+        No measurements, or no rough trajectory to start from: for a target asked for in
+        ``target_ids``, or for every target when they are not given (then a target without
+        one is left out and named in the message, so that stray data of an unknown target
+        cannot fail the others' window).
     """
     cfg = cfg or EstimatorConfig()
     if not t1 > t0:
@@ -122,6 +125,7 @@ def estimate(
     if not ids:
         raise EstimationError(f'no measurements in window [{t0:.3f}, {t1:.3f}]')
     k_start = _time.perf_counter()
+    left_out: list[int] = []
     selections: dict[int, KnotSelection] = {}
     segments: dict[int, tuple[Segment, ...]] = {}
     for tid in ids:
@@ -129,6 +133,9 @@ def estimate(
         if rough is None and previous and tid in previous:
             rough = _rough_from_previous(previous[tid], t0, t1)
         if rough is None:
+            if target_ids is None:  # every target: one without a start is left out
+                left_out.append(tid)
+                continue
             raise EstimationError(
                 f'target {tid}: no telemetry, fixes or previous solution in '
                 f'[{t0:.3f}, {t1:.3f}] to start from'
@@ -148,6 +155,11 @@ def estimate(
             sel = _seed_from_previous(sel, previous[tid], rough)
         sel = replace(sel, rough_source=rough.source)
         selections[tid] = sel
+    if not selections:
+        raise EstimationError(
+            f'no target in [{t0:.3f}, {t1:.3f}] has telemetry, fixes or a previous solution '
+            f'to start from (targets {left_out})'
+        )
     knot_time = _time.perf_counter() - k_start
     s_start = _time.perf_counter()
     prob = Problem(obs, {t: (s.trajectory, s.coef) for t, s in selections.items()}, cfg, t0, t1)
@@ -297,6 +309,11 @@ def estimate(
     msg = (
         out.message
         + refine_note
+        + (
+            f'; target(s) {left_out} left out: no telemetry, fixes or previous solution'
+            if left_out
+            else ''
+        )
         + ('; normal matrix singular (pseudo-inverse covariance)' if singular else '')
     )
     if prob.gate_refused:
