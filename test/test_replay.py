@@ -370,6 +370,30 @@ def test_most_streams_going_back_reset_once_and_the_held_messages_are_used():
             node.destroy_node()
 
 
+def test_a_stamp_years_ahead_on_one_stream_is_held_and_dropped_not_taken_as_newest():
+    from orbit_tracking.ros.triangulation_node import TriangulationNode
+
+    s = 1_000_000_000
+    with default_context():
+        node = TriangulationNode()
+        try:
+            for stream in ('a', 'b', 'c'):
+                node._in_time(stream, EPOCH_NS + 20 * s)
+            used: list[int] = []
+            assert not node._in_time('a', EPOCH_NS + 10**9 * s, lambda: used.append(1))
+            assert node._in_time('a', EPOCH_NS + 21 * s)  # back with the others
+            assert used == [] and node.counts['time_ahead_unconfirmed'] == 1
+            assert node._streams['a'][1] == EPOCH_NS + 21 * s
+            # most streams ahead together (a new pass while the old is still heard): taken
+            got: list[str] = []
+            for stream in ('a', 'b'):
+                node._in_time(stream, EPOCH_NS + 5000 * s, lambda st=stream: got.append(st))
+            assert got == ['a', 'b'] and node.counts['time_resets'] == 0
+            assert node._in_time('c', EPOCH_NS + 5000 * s)
+        finally:
+            node.destroy_node()
+
+
 def test_a_lone_stream_going_back_is_the_majority():
     from orbit_tracking.ros.triangulation_node import TriangulationNode
 

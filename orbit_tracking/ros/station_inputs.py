@@ -20,7 +20,10 @@ clock, a hostile publisher) only loses its own data: when it returns to the comm
 line, or holds more than ``_MAX_HELD`` messages, what it held is dropped and counted
 (``time_back_unconfirmed``). With a single active stream, its going back is the majority.
 After a reset, the other streams join the new time line as their stamps go back too; until
-then what they still deliver from the old one is dropped (``stale_after_reset``).
+then what they still deliver from the old one is dropped (``stale_after_reset``). A stream
+whose stamps run more than ``_MAX_LEAD_S`` (600 s) ahead of every other active stream is
+held the same way: taken (without a reset) once most streams are there too, else dropped
+(``time_ahead_unconfirmed``), so one stamp years ahead cannot become the newest data time.
 
 Every message is checked at the boundary (stamp, layout, plausible values: see
 :func:`~orbit_tracking.ros.conversions.cloud_to_measurements`); rejections are counted by
@@ -74,7 +77,12 @@ __all__ = ['StationInputs']
 _STATION_TOPIC = re.compile(r'^/stations/([A-Za-z][A-Za-z0-9_]*)/measurements$')
 
 _MAX_HELD = 2000
-"""Messages a stream that went back may hold while the node waits for the others."""
+"""Messages a stream that jumped may hold while the node waits for the others."""
+
+_MAX_LEAD_S = 600.0
+"""Data seconds a stream may run ahead of every other active stream before its stamps
+count as a jump (far more than one topic's queue can lead another's while the node is
+busy)."""
 
 
 class StationInputs(Node):
@@ -146,8 +154,8 @@ class StationInputs(Node):
         )
         self.targets = TargetLimit(self.max_targets)
         self._held: list[tuple[str, int, Callable[[], None]]] = []  # (stream, stamp, redo)
-        # stream that went back -> (its newest stamp on the new line, idle clock then)
-        self._back: dict[str, tuple[int, float]] = {}
+        # stream that jumped -> (its newest stamp on the new line, idle clock then, ahead)
+        self._back: dict[str, tuple[int, float, bool]] = {}
         self._heard: dict[str, float] = {}  # stream -> idle clock at its last message
         self._busy_s = 0.0
         self._busy_since: float | None = None
@@ -346,35 +354,51 @@ class StationInputs(Node):
     # -- time going back ------------------------------------------------------------
     def _in_time(self, stream: str, stamp: int, redo: Callable[[], None] | None = None) -> bool:
         """Whether a message of ``stream`` stamped ``stamp`` [ns] is to be used now (see the
-        module docstring for the reset rule). A message of a stream that went back is held
-        (``redo`` runs it once the reset is confirmed) and False returned.
+        module docstring for the rule). A message of a stream that jumped off the common
+        time line (back, or more than ``_MAX_LEAD_S`` ahead of every other active stream)
+        is held (``redo`` runs it once most streams confirm the jump) and False returned.
 
         Each stream is compared with itself: messages of one topic arrive in order, while
         different topics may lag each other by a queue's worth.
         """
         tol = int(self.time_reset_tolerance * 1e9)
         gen, newest = self._streams.get(stream, (self._generation, stamp))
-        if gen == self._generation and (stream in self._back or stamp < newest - tol):
-            if stamp >= newest - tol:  # back on the common time line: it was a lone voice
-                self._drop_held(stream)
-            else:
-                self._hold(stream, stamp, redo)
+        if gen == self._generation:
+            back = stamp < newest - tol
+            ahead = not back and self._ahead(stream, stamp)
+            if back or ahead:
+                self._hold(stream, stamp, redo, ahead)
                 return False
-        elif gen != self._generation:
+            if stream in self._back:  # back on the common time line: it was a lone voice
+                self._drop_held(stream)
+        else:
             ref = self._generation_newest
             if ref is not None and stamp > ref + tol:  # still the old time line
                 self.counts['stale_after_reset'] += 1
                 return False
-            gen, newest = self._generation, stamp
-        self._streams[stream] = (gen, max(newest, stamp))
+        self._accept(stream, stamp)
+        return True
+
+    def _accept(self, stream: str, stamp: int) -> None:
+        gen, newest = self._streams.get(stream, (self._generation, stamp))
+        if gen != self._generation:
+            newest = stamp
+        self._streams[stream] = (self._generation, max(newest, stamp))
         self._heard[stream] = self._idle_clock()
         ref = self._generation_newest
         self._generation_newest = stamp if ref is None else max(ref, stamp)
-        return True
 
-    def _hold(self, stream: str, stamp: int, redo: Callable[[], None] | None) -> None:
-        last = self._back.get(stream, (stamp, 0.0))[0]
-        self._back[stream] = (max(last, stamp), self._idle_clock())
+    def _ahead(self, stream: str, stamp: int) -> bool:
+        """Whether ``stamp`` lies more than ``_MAX_LEAD_S`` past the newest stamp of every
+        other active stream (a clock set years ahead, a hostile stamp)."""
+        others = [
+            self._streams[s][1] for s in self._active() if s != stream and s not in self._back
+        ]
+        return bool(others) and stamp > max(others) + int(_MAX_LEAD_S * 1e9)
+
+    def _hold(self, stream: str, stamp: int, redo: Callable[[], None] | None, ahead: bool) -> None:
+        last = self._back.get(stream, (stamp, 0.0, ahead))[0]
+        self._back[stream] = (max(last, stamp), self._idle_clock(), ahead)
         if redo is not None:
             self._held.append((stream, stamp, redo))
             if sum(1 for h in self._held if h[0] == stream) > _MAX_HELD:
@@ -383,24 +407,23 @@ class StationInputs(Node):
         self._check_reset()
 
     def _drop_held(self, stream: str) -> None:
-        """A stream that went back alone: forget that and drop what it held."""
-        self._back.pop(stream, None)
+        """A stream that jumped alone: forget that and drop what it held."""
+        _, _, ahead = self._back.pop(stream)
         dropped = sum(1 for h in self._held if h[0] == stream)
         self._held = [h for h in self._held if h[0] != stream]
         self._reject(
-            'time_back_unconfirmed',
-            f'stream {stream} went back in time while most others did not: '
-            f'{dropped} of its messages dropped',
+            'time_ahead_unconfirmed' if ahead else 'time_back_unconfirmed',
+            f'stream {stream} jumped {"ahead" if ahead else "back"} in time while most '
+            f'others did not: {dropped} of its messages dropped',
             max(dropped, 1),
         )
 
     def _check_reset(self) -> None:
-        """Reset once more than half of the active streams have gone back; a stream that
-        went back and then fell quiet for ``silent_after`` no longer counts."""
+        """Once more than half of the active streams have jumped, take the new time line:
+        reset if they went back, carry on if they went ahead; a stream that jumped and then
+        fell quiet for ``silent_after`` no longer counts."""
         now = self._idle_clock()
-        for stream in [
-            k for k, (_, heard) in self._back.items() if now - heard > self.silent_after
-        ]:
+        for stream in [k for k, v in self._back.items() if now - v[1] > self.silent_after]:
             self._drop_held(stream)
         if not self._back:
             return
@@ -409,6 +432,11 @@ class StationInputs(Node):
             return
         back, held = self._back, self._held
         self._back, self._held = {}, []
+        if all(v[2] for v in back.values()):  # ahead together: a later time line, no reset
+            for stream, stamp, redo in held:
+                self._accept(stream, stamp)
+                redo()
+            return
         first = min(back, key=lambda k: back[k][0])
         self._time_reset(first, self._streams[first][1], back[first][0])
         for stream in back:
