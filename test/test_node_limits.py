@@ -268,3 +268,22 @@ def test_the_estimator_never_publishes_negative_variances():
             assert sent == []
         finally:
             node.destroy_node()
+
+
+def test_telemetry_and_fixes_in_another_frame_than_the_stations_are_refused():
+    from orbit_tracking.ros.conversions import fix_to_msg, target_state_to_odometry
+    from orbit_tracking.ros.estimator_node import EstimatorNode
+
+    p, v = np.array([4.0e6, 3.0e6, 3.5e6]), np.array([100.0, 2000.0, -30.0])
+    with default_context(time_reference=EPOCH_NS * 1e-9):
+        node = EstimatorNode()
+        try:
+            node.world_frame = 'earth'  # set by the first station state
+            node._on_telemetry(
+                target_state_to_odometry(0, 'eci', 1.0, p, v, np.eye(3), np.eye(3), TB)
+            )
+            node._on_fix(fix_to_msg('eci', 1.0, p, np.eye(3), TB))
+            assert node.counts['frame_mismatch'] == 2
+            assert node.buffer.sizes()['telemetry'] == 0
+        finally:
+            node.destroy_node()

@@ -360,6 +360,12 @@ class EstimatorNode(StationInputs):
             return
         if self.target_id >= 0 and s.target_id != self.target_id:
             return
+        if self.world_frame and msg.header.frame_id != self.world_frame:
+            self._reject(
+                'frame_mismatch',
+                f'telemetry in frame {msg.header.frame_id!r}, expected {self.world_frame!r}',
+            )
+            return
         if not self._admit({s.target_id}):
             self._reject('too_many_targets', f'telemetry of target {s.target_id} dropped')
             return
@@ -389,6 +395,12 @@ class EstimatorNode(StationInputs):
             t, p, c = msg_to_fix(msg, self._timebase(ns))
         except ValueError as exc:
             self._reject('invalid_fix', f'fix rejected: {exc}')
+            return
+        if self.world_frame and msg.header.frame_id != self.world_frame:
+            self._reject(
+                'frame_mismatch',
+                f'fix in frame {msg.header.frame_id!r}, expected {self.world_frame!r}',
+            )
             return
         if self._in_time('fixes', ns, lambda: self._add_fix(t, p, c)):
             self._add_fix(t, p, c)
