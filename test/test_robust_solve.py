@@ -104,8 +104,10 @@ def _max_difference(a: Estimate, b: Estimate) -> tuple[float, float]:
 @pytest.mark.parametrize('use_telemetry', [True, False], ids=['telemetry', 'stations_only'])
 @pytest.mark.parametrize('case', STATION_CASES, ids=[c[2] for c in STATION_CASES])
 def test_one_wild_station_value_is_gated_and_moves_nothing(case, use_telemetry):
-    """Measured: the trajectory with the wild value equals the one with it removed to
-    1e-9 m (5e-8 m for the azimuth without telemetry), 1e-6 sigma at most. On the code
+    """Measured: the trajectory with the wild value equals the one with it removed to the
+    bit (the plain solve restarts from where the warm-up started, so it takes the same
+    steps); before that restart it was within the Gauss-Newton tolerance only (1e-9 m,
+    5e-8 m for the azimuth without telemetry, 0.7 mm in a DDS replay). On the code
     before the robust solve, with telemetry: +400 km 661 m off (the gate refused: 99 % of
     the rows 'bad'), 1e30 1.6e27 m off, 1e300 64 m off, the azimuth 105 m off."""
     cfg = EstimatorConfig(use_telemetry=use_telemetry)
@@ -127,11 +129,11 @@ def test_one_wild_station_value_is_gated_and_moves_nothing(case, use_telemetry):
     assert np.isnan(res[k, j])  # the gated value carries no residual
     assert np.all(np.isfinite(res[k, np.arange(len(fields)) != j]))  # its row's others do
     dpos, dsig = _max_difference(bad, ref)
-    assert dpos < 1e-6, dpos
-    assert dsig < 1e-4, dsig
+    assert dpos < 1e-9, dpos
+    assert dsig < 1e-9, dsig
     # the covariance is that of the plain fit on the rows kept (no robust weights left)
     np.testing.assert_allclose(
-        bad.targets[0].covariance, ref.targets[0].covariance, rtol=1e-6, atol=0.0
+        bad.targets[0].covariance, ref.targets[0].covariance, rtol=1e-9, atol=0.0
     )
 
 
