@@ -321,8 +321,9 @@ def solve(
     starts from the same ``beta`` as the warm-up did, so that it takes exactly the steps
     it would have taken had those rows never arrived (from the warm-up's solution it would
     end within the Gauss-Newton tolerance of that, ~1 mm, instead). When the warm-up left
-    every row at full weight it was the plain solve already and is taken as such. Without ``warm_up`` (a problem that carries
-    the gates of an earlier solve, e.g. on refined knots) the plain solve starts at once.
+    every row at full weight it was the plain solve already and is taken as such. Without
+    ``warm_up`` (a problem that carries the gates of an earlier solve, e.g. on refined
+    knots) the plain solve starts at once.
     """
     iterations = halvings = 0
     out: GnOutcome | None = None
