@@ -172,6 +172,21 @@ def test_target_id_is_optional_and_defaults_to_zero():
     np.testing.assert_array_equal(batch.time, [5.0, 5.0])
 
 
+def test_target_ids_past_the_signed_32_bit_range_are_dropped_and_counted():
+    msg = _hand_built_cloud(
+        [('range', '<f8', 0), ('sigma_range', '<f8', 8), ('target_id', '<u4', 16)],
+        {
+            'range': [1e5, 2e5, 3e5],
+            'sigma_range': [1.0] * 3,
+            'target_id': [2**31 - 1, 2**31, 2**32 - 1],
+        },
+        point_step=24,
+    )
+    batch = cloud_to_measurements(msg, TB)
+    np.testing.assert_array_equal(batch.target_id, [2**31 - 1])
+    assert batch.rejected == 2 and batch.reasons == {'target_id_out_of_range': 2}
+
+
 def test_measurements_to_cloud_rejects_bad_input():
     t, tid, values, sigmas = _rows(('range',), [1.0])
     with pytest.raises(MeasurementError, match='bogus'):
@@ -602,7 +617,17 @@ def test_target_frame_ids():
     assert target_frame_id(0) == 'target_0' and target_frame_id(12) == 'target_12'
     assert target_id_from_frame('target_12') == 12
     assert target_id_from_frame('target') == 0
-    for bad in ('sat06', 'target_', 'target_x', 'target_-1'):
+    assert target_id_from_frame('target_2147483647') == 2**31 - 1
+    for bad in (
+        'sat06',
+        'target_',
+        'target_x',
+        'target_-1',
+        'target_2147483648',
+        'target_4294967295',
+        'target_' + '9' * 5000,
+        'target_\u00b2',
+    ):
         with pytest.raises(ValueError, match='target_<id>'):
             target_id_from_frame(bad)
 

@@ -36,6 +36,7 @@ __all__ = [
     'MAX_POINTS',
     'MAX_POSITION_M',
     'MAX_SPEED_MPS',
+    'MAX_TARGET_ID',
     'MAX_TIME_OFFSET_S',
     'SIGMA_LIMITS',
     'TargetLimit',
@@ -74,6 +75,12 @@ an hour of epochs in one message (store and forward after a link outage), not mo
 
 MAX_POINTS = 100_000
 """Largest number of points in one measurement message."""
+
+MAX_TARGET_ID = 2**31 - 1
+"""Largest target id. The wire field is UINT32, but the ids past the signed 32-bit range
+are what -1 and other negative sentinels become when written as UINT32 ("no id", "not
+set"), and the ids a node prints, publishes in topic names and hands to other tools
+(``int32`` marker ids, integer columns) must fit a signed 32-bit integer."""
 
 MAX_POSITION_M = 1e9
 """Largest distance [m] of a state (station, telemetry, fix) from the world frame's

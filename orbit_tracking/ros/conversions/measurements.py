@@ -17,7 +17,12 @@ from numpy.typing import NDArray
 from sensor_msgs.msg import PointCloud2
 
 from orbit_tracking.core.errors import MeasurementError
-from orbit_tracking.core.models.limits import MAX_POINTS, MAX_TIME_OFFSET_S, implausible_rows
+from orbit_tracking.core.models.limits import (
+    MAX_POINTS,
+    MAX_TARGET_ID,
+    MAX_TIME_OFFSET_S,
+    implausible_rows,
+)
 from orbit_tracking.core.models.measurements import FIELDS, sigma_field
 from orbit_tracking.ros.conversions._common import (
     _FLOAT64,
@@ -136,7 +141,9 @@ def cloud_to_measurements(msg: PointCloud2, timebase: TimeBase) -> MeasurementBa
         ``_layout_problem``: not one dense row of exactly the declared size), ``no_points``.
         Individual bad points are dropped instead and counted in ``rejected`` and
         ``reasons`` (:func:`~orbit_tracking.core.models.limits.implausible_rows`,
-        ``time_offset_out_of_range``, ``sigma_invalid``, ``no_value``).
+        ``time_offset_out_of_range``, ``target_id_out_of_range`` (beyond
+        :data:`~orbit_tracking.core.models.limits.MAX_TARGET_ID`), ``sigma_invalid``,
+        ``no_value``).
     """
     station = msg.header.frame_id
     try:
@@ -199,6 +206,10 @@ def cloud_to_measurements(msg: PointCloud2, timebase: TimeBase) -> MeasurementBa
     bad = ~(np.abs(offs) <= MAX_TIME_OFFSET_S)  # NaN included
     if np.any(bad):
         reasons['time_offset_out_of_range'] = int(bad.sum())
+    bad_id = (tids > MAX_TARGET_ID) & ~bad
+    if np.any(bad_id):
+        reasons['target_id_out_of_range'] = int(bad_id.sum())
+        bad |= bad_id
     rest = np.flatnonzero(~bad)
     implausible, why = implausible_rows(fields, values[rest], sigmas[rest])
     bad[rest[implausible]] = True

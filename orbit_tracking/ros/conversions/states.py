@@ -20,7 +20,7 @@ from nav_msgs.msg import Odometry
 from numpy.typing import NDArray
 
 from orbit_tracking.core import frames
-from orbit_tracking.core.models.limits import state_problem
+from orbit_tracking.core.models.limits import MAX_TARGET_ID, state_problem
 from orbit_tracking.ros.conversions._common import FloatArray
 from orbit_tracking.ros.conversions.time import TimeBase
 
@@ -125,9 +125,15 @@ def target_id_from_frame(frame: str) -> int:
     """Inverse of :func:`target_frame_id`; plain ``target`` is target 0."""
     if frame == 'target':
         return 0
-    if frame.startswith('target_') and frame[7:].isdigit():
-        return int(frame[7:])
-    raise ValueError(f"target frame must be 'target' or 'target_<id>'; got {frame!r}")
+    digits = frame[7:] if frame.startswith('target_') else ''
+    if digits.isascii() and digits.isdigit() and len(digits) <= 10:
+        tid = int(digits)
+        if tid <= MAX_TARGET_ID:
+            return tid
+    raise ValueError(
+        f"target frame must be 'target' or 'target_<id>' with an id up to {MAX_TARGET_ID}; "
+        f'got {frame[:80]!r}'
+    )
 
 
 def target_state_to_odometry(

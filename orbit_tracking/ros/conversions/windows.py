@@ -16,6 +16,7 @@ from numpy.typing import ArrayLike, NDArray
 from sensor_msgs.msg import PointCloud2
 
 from orbit_tracking.core.estimation.residuals import ResidualStats
+from orbit_tracking.core.models.limits import MAX_TARGET_ID
 from orbit_tracking.core.time import format_stamp, parse_stamp
 from orbit_tracking.ros.conversions._common import FloatArray, _dt, _layout_problem, _pack_cloud
 from orbit_tracking.ros.conversions.diagnostics import diagnostic_array, diagnostic_status
@@ -169,7 +170,9 @@ def cloud_to_window_states(msg: PointCloud2, timebase: TimeBase) -> WindowStates
         An invalid stamp, a layout other than the contract's (see ``_layout_problem``; at
         most :data:`MAX_WINDOW_POINTS` points), a missing field or one of the wrong
         datatype or count, non-finite values, a covariance with a negative
-        variance, or a ``window_length`` that is not one positive value.
+        variance, a target id beyond
+        :data:`~orbit_tracking.core.models.limits.MAX_TARGET_ID`, or a ``window_length``
+        that is not one positive value.
     """
     checked_stamp_ns(msg.header.stamp)
     problem = _layout_problem(msg, MAX_WINDOW_POINTS)
@@ -220,6 +223,8 @@ def cloud_to_window_states(msg: PointCloud2, timebase: TimeBase) -> WindowStates
         raise ValueError('window states message holds non-finite values')
     if np.any(np.diagonal(c, axis1=1, axis2=2) < 0.0):
         raise ValueError('window states message holds a negative variance')
+    if np.any(arr['target_id'] > MAX_TARGET_ID):
+        raise ValueError(f'window states message holds a target id beyond {MAX_TARGET_ID}')
     time = t0 + off
     if 'window_length' in names:
         length = arr['window_length'].astype(np.float64)
