@@ -113,16 +113,27 @@ def test_the_results_node_publishes_at_most_max_targets_targets():
     with default_context(max_targets=3, time_reference=EPOCH_NS * 1e-9):
         node = ResultsNode()
         try:
-            t = np.repeat(np.arange(0.0, 1.01, 0.1), 10)
-            ids = np.tile(np.arange(10, dtype=np.uint32), 11)
-            x = np.zeros((t.size, 6))
-            x[:, 0] = 6.4e6
-            cov = np.broadcast_to(np.eye(6), (t.size, 6, 6)).copy()
-            node._on_window(window_states_to_cloud('earth', 0.0, t, ids, x, cov, TB, t1=1.0))
-            node._on_window(window_states_to_cloud('earth', 0.5, t + 0.5, ids, x, cov, TB, t1=1.5))
+
+            def window(t0: float, ids: list[int]) -> PointCloud2:
+                t = np.repeat(t0 + np.arange(0.0, 1.01, 0.1), len(ids))
+                x = np.zeros((t.size, 6))
+                x[:, 0] = 6.4e6
+                cov = np.broadcast_to(np.eye(6), (t.size, 6, 6)).copy()
+                tid = np.tile(np.array(ids, dtype=np.uint32), 11)
+                return window_states_to_cloud('earth', t0, t, tid, x, cov, TB, t1=t0 + 1.0)
+
+            node._on_window(window(0.0, [0, 1]))
+            node._on_window(window(0.5, [0, 5, 6]))  # 6 is one id too many
+            assert node.counts['too_many_targets'] == 11
+            # more ids than max_targets in one window: no estimator sends that; refused
+            # whole, and it does not move the time line
+            node._on_window(window(1.0, list(range(10))))
+            assert node.counts['too_many_targets'] == 11 + 110
+            assert node.stitcher.last_end == 1.5 and node.timeline.held is None
+            node._on_window(window(1.0, [0, 1]))
             node._flush('end')
             assert len(node.state_pubs) == 3
-            assert node.counts['too_many_targets'] == 2 * 7 * 11
+            assert node.counts['windows_used'] == 3
             assert node.counts['internal_error'] == 0
         finally:
             node.destroy_node()
@@ -147,6 +158,33 @@ def test_the_results_node_drops_a_residuals_message_naming_too_many_stations():
             assert len(node.residual_totals) == 3
             node._on_residuals(window_residuals_to_msg(stats(300), 1.0, 2.0, None, TB))
             assert node.counts['invalid_residuals'] == 1 and len(node.residual_totals) == 3
+        finally:
+            node.destroy_node()
+
+
+def test_the_results_node_refuses_residuals_far_from_every_window():
+    """Residuals of a window years ahead of the windows received would restart the
+    pass's residual sums when the real ones return; they are refused and counted."""
+    from orbit_tracking.core.estimation.residuals import ResidualStats
+    from orbit_tracking.ros.conversions import window_residuals_to_msg
+    from orbit_tracking.ros.results_node import ResultsNode
+
+    one, ones = np.ones(1), np.ones(1, dtype=int)
+    stats = {'s0': ResidualStats('s0', ('range',), 1, ones, one, one, 0 * ones, 0)}
+    with default_context(time_reference=EPOCH_NS * 1e-9):
+        node = ResultsNode()
+        try:
+            t = np.arange(0.0, 1.01, 0.1)
+            x = np.zeros((t.size, 6))
+            x[:, 0] = 6.4e6
+            cov = np.broadcast_to(np.eye(6), (t.size, 6, 6)).copy()
+            tid = np.zeros(t.size, dtype=np.uint32)
+            node._on_window(window_states_to_cloud('earth', 0.0, t, tid, x, cov, TB, t1=1.0))
+            node._on_residuals(window_residuals_to_msg(stats, 0.0, 1.0, None, TB))
+            node._on_residuals(window_residuals_to_msg(stats, 1e8, 1e8 + 1.0, None, TB))
+            assert node.counts['residuals_off_time_line'] == 1
+            node._on_residuals(window_residuals_to_msg(stats, 1.0, 2.0, None, TB))
+            assert node.residual_windows['s0'] == 2  # the sums went on, no restart
         finally:
             node.destroy_node()
 

@@ -190,7 +190,8 @@ class ResultsNode(Node):
             'max_targets',
             32,
             'Distinct target ids published (first come; each has its own topics); states '
-            'of further ids are dropped and counted (too_many_targets).',
+            'of further ids are dropped and counted (too_many_targets), and a window with '
+            'more ids than this is refused whole.',
             read_only=True,
             min_value=1,
             max_value=4096,
@@ -314,6 +315,15 @@ class ResultsNode(Node):
                 raise ValueError('the window holds no state')
             if not ws.world_frame:
                 raise ValueError('empty header.frame_id (world frame)')
+            n_ids = np.unique(ws.target_id).size
+            if n_ids > self.targets.max_targets:  # no estimator sends that: a stray message
+                self._reject(
+                    'too_many_targets',
+                    f'window of {n_ids} target ids, more than max_targets = '
+                    f'{self.targets.max_targets}: refused whole',
+                    int(ws.time.size),
+                )
+                return
             keep = self.targets.admit(ws.target_id)
             if not np.all(keep):
                 self._reject(
@@ -541,6 +551,18 @@ class ResultsNode(Node):
         if not items:
             return
         t1 = items[0].t1
+        ends = [self.stitcher.last_end]
+        if self.timeline.held is not None:
+            ends.append(self.timeline.held[0][1])
+        ends = [e for e in ends if math.isfinite(e)]
+        if ends and not any(abs(t1 - e) <= self.timeline.max_jump for e in ends):
+            self._reject(
+                'residuals_off_time_line',
+                f'residuals of a window ending {self._stamp(t1)}, more than max_window_jump '
+                f'from every window received (the last ending {self._stamp(ends[0])}): '
+                'refused',
+            )
+            return
         if t1 <= self.residual_end + _SAME_TIME:
             if abs(t1 - self.residual_end) <= _SAME_TIME:
                 self._reject(
@@ -586,6 +608,7 @@ class ResultsNode(Node):
                 'internal_error',
                 'too_many_targets',
                 'window_jump_unconfirmed',
+                'residuals_off_time_line',
             )
         }
         main = self._path_target()
