@@ -348,6 +348,37 @@ def test_one_stream_going_back_alone_resets_nothing_and_loses_only_its_own_data(
             node.destroy_node()
 
 
+def test_a_new_stream_starting_far_behind_the_others_is_held_as_gone_back():
+    """A station first heard with a stamp 1 s after the epoch (its first message lost, or
+    its clock at 1970) is not taken on a time line of its own; when most streams follow
+    it (a replay started anew) the reset uses what it held."""
+    from orbit_tracking.ros.triangulation_node import TriangulationNode
+
+    s = 1_000_000_000
+    with default_context(silent_after=0.5):
+        node = TriangulationNode()
+        try:
+            for stream in ('a', 'b', 'c'):
+                assert node._in_time(stream, EPOCH_NS + 20 * s)
+            used: list[str] = []
+            assert not node._in_time('evil', s, lambda: used.append('evil'))
+            assert node._in_time('late', EPOCH_NS - 500 * s)  # 520 s behind: still taken
+            time.sleep(0.6)
+            for stream in ('a', 'b', 'c', 'late'):
+                node._in_time(stream, EPOCH_NS + 21 * s)
+            node._check_reset()
+            assert node.counts['time_back_unconfirmed'] == 1 and used == []
+            assert node.counts['time_resets'] == 0
+            # the same start, then most streams go back to it: one reset, the held data used
+            assert not node._in_time('new', EPOCH_NS - 10_000 * s, lambda: used.append('new'))
+            for stream in ('a', 'b', 'c'):
+                node._in_time(stream, EPOCH_NS - 10_000 * s, lambda st=stream: used.append(st))
+            assert node.counts['time_resets'] == 1
+            assert used[0] == 'new' and sorted(used) == ['a', 'b', 'new']
+        finally:
+            node.destroy_node()
+
+
 def test_most_streams_going_back_reset_once_and_the_held_messages_are_used():
     from orbit_tracking.ros.triangulation_node import TriangulationNode
 

@@ -301,6 +301,23 @@ def test_station_without_state_gives_no_line_and_is_counted():
     assert pipe.counts['too_few_lines'] > 0
 
 
+def test_a_lone_sample_of_a_station_that_never_sends_a_state_is_counted_when_pruned():
+    """One point off the epoch grid from a station nobody declared gives no line at any
+    epoch; it is counted once the epochs have passed it, not kept unseen."""
+    sc = load_scenario('seed000_s1')
+    res = simulate(sc)
+    pipe = _pipeline_for(res)
+    m = res.measurements['opt01']
+    k = len(m) // 2
+    t_off = m.time[k : k + 1] + 0.0123  # between epochs
+    pipe.add_measurements(
+        'zz02', m.fields, t_off, m.target_id[k : k + 1], m.values[k : k + 1], m.sigmas[k : k + 1]
+    )
+    fixes = pipe.flush()
+    assert len(fixes) == len(_pipeline_for(res).flush())
+    assert pipe.counts['samples_without_station_state'] == 1
+
+
 def test_nan_angles_are_counted_and_never_used():
     sc = load_scenario('seed000_s1')
     res = simulate(sc)

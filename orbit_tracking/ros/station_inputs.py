@@ -24,6 +24,10 @@ then what they still deliver from the old one is dropped (``stale_after_reset``)
 whose stamps run more than ``_MAX_LEAD_S`` (600 s) ahead of every other active stream is
 held the same way: taken (without a reset) once most streams are there too, else dropped
 (``time_ahead_unconfirmed``), so one stamp years ahead cannot become the newest data time.
+A new stream whose first stamp lies more than ``_MAX_LEAD_S`` before every active stream
+counts as one that went back (held; dropped as ``time_back_unconfirmed`` unless most
+streams follow it), so a station with its clock at 1970 is not taken on a time line of its
+own.
 
 Every message is checked at the boundary (stamp, layout, plausible values: see
 :func:`~orbit_tracking.ros.conversions.cloud_to_measurements`); rejections are counted by
@@ -364,7 +368,7 @@ class StationInputs(Node):
         tol = int(self.time_reset_tolerance * 1e9)
         gen, newest = self._streams.get(stream, (self._generation, stamp))
         if gen == self._generation:
-            back = stamp < newest - tol
+            back = stamp < newest - tol or (stream not in self._streams and self._behind(stamp))
             ahead = not back and self._ahead(stream, stamp)
             if back or ahead:
                 self._hold(stream, stamp, redo, ahead)
@@ -395,6 +399,13 @@ class StationInputs(Node):
             self._streams[s][1] for s in self._active() if s != stream and s not in self._back
         ]
         return bool(others) and stamp > max(others) + int(_MAX_LEAD_S * 1e9)
+
+    def _behind(self, stamp: int) -> bool:
+        """Whether the first stamp of a new stream lies more than ``_MAX_LEAD_S`` before
+        the newest stamp of every active stream: it starts behind the common time line, as
+        if it had gone back (a clock at 1970, a replay started while another runs)."""
+        others = [self._streams[s][1] for s in self._active() if s not in self._back]
+        return bool(others) and stamp < min(others) - int(_MAX_LEAD_S * 1e9)
 
     def _hold(self, stream: str, stamp: int, redo: Callable[[], None] | None, ahead: bool) -> None:
         last = self._back.get(stream, (stamp, 0.0, ahead))[0]
@@ -438,7 +449,8 @@ class StationInputs(Node):
                 redo()
             return
         first = min(back, key=lambda k: back[k][0])
-        self._time_reset(first, self._streams[first][1], back[first][0])
+        newest = self._streams[first][1] if first in self._streams else self._generation_newest
+        self._time_reset(first, back[first][0] if newest is None else newest, back[first][0])
         for stream in back:
             starts = [h[1] for h in held if h[0] == stream] or [back[stream][0]]
             self._streams[stream] = (self._generation, min(starts))

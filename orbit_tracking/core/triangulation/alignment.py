@@ -151,11 +151,14 @@ class _Series:
             self._dt_cache = (len(self.t), value)
         return value
 
-    def prune(self, before: float) -> None:
-        k = max(0, bisect_left(self.t, before) - 2)
+    def prune(self, before: float, keep: int = 2) -> int:
+        """Drop the samples before ``before`` but the last ``keep`` of them (interpolation
+        brackets); returns how many were dropped."""
+        k = max(0, bisect_left(self.t, before) - keep)
         if k:
             for lst in (self.t, self.a, self.b, self.r, self.sa, self.sb, self.sr):
                 del lst[:k]
+        return k
 
 
 @dataclass(frozen=True)
@@ -472,7 +475,10 @@ class Aligner:
 
     def _prune(self, t: float) -> None:
         horizon = 4.0 * self.config.max_gap_factor * max(self.period(), 1e-3)
-        for s in self.series.values():
-            s.prune(t - horizon)
+        for (sid, _), s in self.series.items():
+            if len(self.poses.get(sid, ())):
+                s.prune(t - horizon)
+            else:  # a station that never sent a state: its samples can never be used
+                self.counts['samples_without_station_state'] += s.prune(t - horizon, keep=0)
         for p in self.poses.values():
             p.prune(t - horizon)
