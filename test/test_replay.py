@@ -348,6 +348,56 @@ def test_one_stream_going_back_alone_resets_nothing_and_loses_only_its_own_data(
             node.destroy_node()
 
 
+@pytest.mark.parametrize('first_lost', [False, True], ids=['both', 'only_1970'])
+def test_a_lone_voice_in_a_pause_resets_nothing(first_lost):
+    """The same attack while every real stream is quiet (between passes, a replay
+    stopped): the rogue is still one voice among the streams active before the pause.
+    Before, it was the majority of an empty room: the node reset to 1970 and then
+    dropped every real message as stale."""
+    from orbit_tracking.ros.triangulation_node import TriangulationNode
+
+    s = 1_000_000_000
+    with default_context(silent_after=0.3):
+        node = TriangulationNode()
+        try:
+            for k in range(3):
+                for stream in ('a', 'b', 'c'):
+                    assert node._in_time(stream, EPOCH_NS + k * s // 10)
+            time.sleep(0.4)  # the pause: nobody is active
+            assert node._active() == []
+            if not first_lost:
+                assert node._in_time('evil', EPOCH_NS + s // 5)
+            assert not node._in_time('evil', s, lambda: None)
+            assert node.counts['time_resets'] == 0
+            time.sleep(0.4)
+            node._check_reset()
+            assert node.counts['time_back_unconfirmed'] == 1
+            for stream in ('a', 'b', 'c'):  # the pass resumes: taken, nothing stale
+                assert node._in_time(stream, EPOCH_NS + 3 * s)
+            assert node.counts['time_resets'] == 0 and node.counts['stale_after_reset'] == 0
+        finally:
+            node.destroy_node()
+
+
+def test_a_loop_after_a_pause_still_resets_once():
+    from orbit_tracking.ros.triangulation_node import TriangulationNode
+
+    s = 1_000_000_000
+    with default_context(silent_after=0.3):
+        node = TriangulationNode()
+        try:
+            for stream in ('a', 'b', 'c'):
+                node._in_time(stream, EPOCH_NS + 20 * s)
+            time.sleep(0.4)
+            assert not node._in_time('a', EPOCH_NS, lambda: None)
+            assert node.counts['time_resets'] == 0  # one of three
+            assert not node._in_time('b', EPOCH_NS, lambda: None)
+            assert node.counts['time_resets'] == 1
+            assert node._in_time('c', EPOCH_NS)
+        finally:
+            node.destroy_node()
+
+
 def test_a_new_stream_starting_far_behind_the_others_is_held_as_gone_back():
     """A station first heard with a stamp 1 s after the epoch (its first message lost, or
     its clock at 1970) is not taken on a time line of its own; when most streams follow

@@ -12,7 +12,8 @@ newest one of the same stream (a station's measurements, a moving station's stat
 stream the node adds) may mean the source started again (a bag replayed in a loop, a
 restarted simulator). One voice is not evidence: a stream that goes back is *held* (its
 messages kept, unused) until more than half of the active streams (those heard within
-``silent_after`` plus those held) have gone back too; then the node resets once
+``silent_after`` of the last of them heard, so a pause changes nothing, plus those held)
+have gone back too; then the node resets once
 (``_on_time_reset``: publish what it holds, clear buffers and windows), logs one line,
 counts ``time_resets`` and processes the held messages on the new time line; fixed-station
 states are given back to it. A lone stream that goes back while the others go on (a broken
@@ -356,6 +357,22 @@ class StationInputs(Node):
         ]
 
     # -- time going back ------------------------------------------------------------
+    def _quorum(self) -> list[str]:
+        """The streams a jump is weighed against: those of the current time line that
+        have not jumped and were heard within ``silent_after`` of the last one of them
+        heard. While data flow these are the active streams; in a pause (between passes,
+        a replay stopped) they are the streams active before it, so that a lone voice in
+        a pause is still one voice among them, not the majority of an empty room."""
+        heard = {
+            s: t
+            for s, t in self._heard.items()
+            if s not in self._back and self._streams[s][0] == self._generation
+        }
+        if not heard:
+            return []
+        last = max(heard.values())
+        return [s for s, t in heard.items() if last - t <= self.silent_after]
+
     def _in_time(self, stream: str, stamp: int, redo: Callable[[], None] | None = None) -> bool:
         """Whether a message of ``stream`` stamped ``stamp`` [ns] is to be used now (see the
         module docstring for the rule). A message of a stream that jumped off the common
@@ -396,7 +413,7 @@ class StationInputs(Node):
         """Whether ``stamp`` lies more than ``_MAX_LEAD_S`` past the newest stamp of every
         other active stream (a clock set years ahead, a hostile stamp)."""
         others = [
-            self._streams[s][1] for s in self._active() if s != stream and s not in self._back
+            self._streams[s][1] for s in self._quorum() if s != stream
         ]
         return bool(others) and stamp > max(others) + int(_MAX_LEAD_S * 1e9)
 
@@ -404,7 +421,7 @@ class StationInputs(Node):
         """Whether the first stamp of a new stream lies more than ``_MAX_LEAD_S`` before
         the newest stamp of every active stream: it starts behind the common time line, as
         if it had gone back (a clock at 1970, a replay started while another runs)."""
-        others = [self._streams[s][1] for s in self._active() if s not in self._back]
+        others = [self._streams[s][1] for s in self._quorum()]
         return bool(others) and stamp < min(others) - int(_MAX_LEAD_S * 1e9)
 
     def _hold(self, stream: str, stamp: int, redo: Callable[[], None] | None, ahead: bool) -> None:
@@ -438,7 +455,7 @@ class StationInputs(Node):
             self._drop_held(stream)
         if not self._back:
             return
-        active = set(self._active()) | set(self._back)
+        active = set(self._quorum()) | set(self._back)
         if 2 * len(self._back) <= len(active):
             return
         back, held = self._back, self._held
