@@ -335,6 +335,7 @@ def test_one_stream_going_back_alone_resets_nothing_and_loses_only_its_own_data(
             used: list[int] = []
             assert node._in_time('evil', EPOCH_NS)  # a new stream: taken on its own clock
             assert not node._in_time('evil', s, lambda: used.append(1))  # held, not used
+            assert node.counts['time_back_held'] == 1  # seen at once
             for k in range(3, 6):
                 for stream in ('a', 'b', 'c'):
                     assert node._in_time(stream, EPOCH_NS + k * s // 10)

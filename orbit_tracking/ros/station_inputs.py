@@ -19,7 +19,9 @@ counts ``time_resets`` and processes the held messages on the new time line; fix
 states are given back to it. A lone stream that goes back while the others go on (a broken
 clock, a hostile publisher) only loses its own data: when it returns to the common time
 line, or holds more than ``_MAX_HELD`` messages, what it held is dropped and counted
-(``time_back_unconfirmed``). With a single active stream, its going back is the majority.
+(``time_back_unconfirmed``). Every message held is counted at once too
+(``time_back_held``, ``time_ahead_held``), so a jump shows in ``/diagnostics`` without
+waiting ``silent_after``. With a single active stream, its going back is the majority.
 After a reset, the other streams join the new time line as their stamps go back too; until
 then what they still deliver from the old one is dropped (``stale_after_reset``). A stream
 whose stamps run more than ``_MAX_LEAD_S`` (600 s) ahead of every other active stream is
@@ -412,9 +414,7 @@ class StationInputs(Node):
     def _ahead(self, stream: str, stamp: int) -> bool:
         """Whether ``stamp`` lies more than ``_MAX_LEAD_S`` past the newest stamp of every
         other active stream (a clock set years ahead, a hostile stamp)."""
-        others = [
-            self._streams[s][1] for s in self._quorum() if s != stream
-        ]
+        others = [self._streams[s][1] for s in self._quorum() if s != stream]
         return bool(others) and stamp > max(others) + int(_MAX_LEAD_S * 1e9)
 
     def _behind(self, stamp: int) -> bool:
@@ -425,6 +425,17 @@ class StationInputs(Node):
         return bool(others) and stamp < min(others) - int(_MAX_LEAD_S * 1e9)
 
     def _hold(self, stream: str, stamp: int, redo: Callable[[], None] | None, ahead: bool) -> None:
+        way = 'ahead' if ahead else 'back'
+        self.counts[f'time_{way}_held'] += 1  # seen at once, whatever becomes of it
+        if stream not in self._back:
+            newest = self._streams.get(stream, (0, self._generation_newest or stamp))[1]
+            self.get_logger().warning(
+                f'stream {stream} jumped {way} in time by {abs(stamp - newest) * 1e-9:.3f} s '
+                f'(to stamp {format_stamp(stamp, 0.0)}): its messages are held until most '
+                f'streams follow it, else dropped when it returns or falls quiet '
+                f'({self.counts[f"time_{way}_held"]} held so far)',
+                throttle_duration_sec=5.0,
+            )
         last = self._back.get(stream, (stamp, 0.0, ahead))[0]
         self._back[stream] = (max(last, stamp), self._idle_clock(), ahead)
         if redo is not None:
