@@ -1,13 +1,18 @@
-"""``orbit-tracking bench``: the benchmark suites (triangulation, estimator, biases and
-the live nodes over DDS), printed as tables and optionally written into
-docs/BENCHMARKS.md."""
+"""``orbit-tracking bench``: the benchmark suites (triangulation, estimator, biases, the
+live nodes over DDS and fault injection over DDS), printed as tables and optionally written
+into docs/BENCHMARKS.md."""
 
 from __future__ import annotations
 
 import argparse
 import os
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from orbit_tracking.tools.bench.faults import FaultResult
 
 __all__ = ['add_bench']
 
@@ -91,7 +96,73 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         if args.write_docs:
             write_docs(args.docs, 'dds', text)
             print(f'updated {args.docs}')
+    if args.suite == 'faults':  # bad messages into the live nodes over DDS; not part of 'all'
+        from orbit_tracking.tools.bench.faults import (
+            EXTRA_ROWS,
+            faults_table,
+            run_faults,
+            select_faults,
+        )
+
+        if not args.faults:  # the whole catalogue: the estimator restart row too
+            EXTRA_ROWS.append(lambda: _restart_row(None if args.quiet else print))
+
+        suite = run_faults(
+            select_faults(args.faults),
+            log_dir=args.logs,
+            lanes=args.lanes,
+            progress=None if args.quiet else print,
+        )
+        command = 'orbit-tracking bench --suite faults' + (
+            f' --faults {" ".join(args.faults)}' if args.faults else ''
+        )
+        text = faults_table(suite, command)
+        print(text)
+        if args.write_docs:
+            write_docs(args.docs, 'faults', text)
+            print(f'updated {args.docs}')
     return 0
+
+
+def _restart_row(progress: Callable[[str], None] | None) -> FaultResult:
+    """The fault table's restart row: the estimator SIGKILLed mid-pass and started again
+    1 s later, with its journal (:func:`~orbit_tracking.tools.bench.restart.
+    measure_restart_loss`)."""
+    from orbit_tracking.tools.bench.fault_catalogue import FaultClass
+    from orbit_tracking.tools.bench.faults import FaultResult
+    from orbit_tracking.tools.bench.restart import measure_restart_loss
+
+    r = measure_restart_loss(progress=progress)
+    fault = FaultClass(
+        'estimator_sigkill_restart',
+        'restart',
+        'estimator killed (SIGKILL) mid-pass, started again 1 s later with its journal',
+        (),
+        (),
+        lambda ref: [],
+    )
+    return FaultResult(
+        fault,
+        sent=0,
+        counted={},
+        counted_how='',
+        crash='',
+        states=int(r['states_published']),
+        clean_states=int(r['states_clean']),
+        max_dp_m=float(r['max_position_diff_m']),
+        run='alone',
+        restart_loss=f'{r["lost"]} of {r["states_clean"]} states',
+        missing_states=int(r['lost']),
+        extra_states=int(r['extra']) + int(r['published_twice']),
+        max_dp_sigma=float(r['max_diff_over_sigma']),
+        sigma_tolerance=RESTART_SIGMA_TOLERANCE,
+    )
+
+
+RESTART_SIGMA_TOLERANCE = 1.0
+"""The restart row's bound on any state's difference from the clean pass, in the killed
+pass's own published sigma: the windows after the restart are solved anew on the same
+data, so they may differ, but not by more than the uncertainty they publish."""
 
 
 def add_bench(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -104,10 +175,10 @@ def add_bench(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     s.add_argument('--quiet', action='store_true', help='no progress lines')
     s.add_argument(
         '--suite',
-        choices=('triangulation', 'estimator', 'biases', 'all', 'dds'),
+        choices=('triangulation', 'estimator', 'biases', 'all', 'dds', 'faults'),
         default='all',
-        help='which benchmark to run (default: all; dds, the live nodes over DDS, only '
-        'when asked)',
+        help='which benchmark to run (default: all; dds, the live nodes over DDS, and faults, '
+        'bad messages thrown at them, only when asked)',
     )
     s.add_argument(
         '--rates',
@@ -119,4 +190,12 @@ def add_bench(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         '--span', type=float, default=30.0, help='dds: data seconds published at each rate'
     )
     s.add_argument('--plots', type=Path, help='folder for the estimator error plots')
+    s.add_argument(
+        '--faults',
+        nargs='+',
+        metavar='NAME',
+        help='faults: fault classes or groups to run (default: the whole catalogue)',
+    )
+    s.add_argument('--lanes', type=int, default=2, help='faults: replays run at a time (1 or 2)')
+    s.add_argument('--logs', type=Path, help='faults: keep the node logs of every replay here')
     s.set_defaults(func=_cmd_bench)
