@@ -43,6 +43,39 @@ def test_a_flood_of_target_ids_is_cut_at_max_targets_and_counted():
             node.destroy_node()
 
 
+def test_a_flood_of_station_topics_is_cut_at_max_stations_and_counted():
+    """Topics of this process's own publishers, in a namespace of their own (discovery is
+    local and nothing is sent; other DDS participants' stations stay out of it)."""
+    import os
+    import time
+
+    import rclpy
+
+    from orbit_tracking.ros import qos
+    from orbit_tracking.ros.triangulation_node import TriangulationNode
+
+    ns = f'/flood_{os.getpid()}'
+    rclpy.init(args=['--ros-args', '-p', 'max_stations:=2', '-r', f'__ns:={ns}'])
+    try:
+        node = TriangulationNode()
+        flood = rclpy.create_node('flood')
+        for k in range(5):
+            flood.create_publisher(
+                PointCloud2, f'stations/s{k}/measurements', qos.MEASUREMENTS_PUB
+            )
+        deadline = time.monotonic() + 10.0
+        while node.counts['too_many_stations'] < 3 and time.monotonic() < deadline:
+            node._discover()
+            time.sleep(0.05)
+        assert len(node.subs) == 2 and node.counts['too_many_stations'] == 3
+        node._discover()  # an ignored station is counted once
+        assert len(node.subs) == 2 and node.counts['too_many_stations'] == 3
+        flood.destroy_node()
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+
+
 def test_bad_measurement_messages_are_counted_by_reason_and_the_node_goes_on():
     from orbit_tracking.ros.estimator_node import EstimatorNode
 

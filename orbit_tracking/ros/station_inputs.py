@@ -36,7 +36,9 @@ Every message is checked at the boundary (stamp, layout, plausible values: see
 :func:`~orbit_tracking.ros.conversions.cloud_to_measurements`); rejections are counted by
 reason (``invalid_messages_<reason>``, ``rejected_points_<reason>``). At most
 ``max_targets`` distinct target ids are taken (first come); points of further ids are
-dropped (``too_many_targets``), so a flood of ids cannot grow the node without bound. No
+dropped (``too_many_targets``), so a flood of ids cannot grow the node without bound; and
+at most ``max_stations`` stations are subscribed to as their topics appear (further ones
+are counted as ``too_many_stations``). No
 callback can take the node down: an unexpected exception is logged with its traceback and
 counted (``internal_error``).
 
@@ -160,6 +162,18 @@ class StationInputs(Node):
             max_value=4096,
         )
         self.targets = TargetLimit(self.max_targets)
+        self.max_stations = declare(
+            self,
+            'max_stations',
+            128,
+            'Stations the node subscribes to as their topics appear (when no stations are '
+            'listed); the topics of further station ids are ignored and counted '
+            '(too_many_stations). Bounds the subscriptions a flood of topics could create.',
+            read_only=True,
+            min_value=1,
+            max_value=4096,
+        )
+        self._ignored_stations: set[str] = set()
         self._held: list[tuple[str, int, Callable[[], None]]] = []  # (stream, stamp, redo)
         # stream that jumped -> (its newest stamp on the new line, idle clock then, ahead)
         self._back: dict[str, tuple[int, float, bool]] = {}
@@ -193,8 +207,18 @@ class StationInputs(Node):
         if not self.station_filter:
             for topic, _types in self.get_topic_names_and_types():
                 m = _STATION_TOPIC.match(topic[len(ns) :]) if topic.startswith(ns + '/') else None
-                if m and m.group(1) not in self.subs:
-                    self._subscribe(m.group(1))
+                sid = m.group(1) if m else None
+                if sid is None or sid in self.subs or sid in self._ignored_stations:
+                    continue
+                if len(self.subs) < self.max_stations:
+                    self._subscribe(sid)
+                else:
+                    self._ignored_stations.add(sid)
+                    self._reject(
+                        'too_many_stations',
+                        f'station {sid[:80]!r} not subscribed: already max_stations = '
+                        f'{self.max_stations} stations',
+                    )
         for sid in self.subs:
             if sid in self.state_subs:
                 continue
