@@ -10,8 +10,8 @@ trajectory is on ``trajectory/states`` and ``trajectory/path``.
 
 The processing nodes are respawned one second after they die. With
 ``journal_dir:=/var/lib/orbit_tracking`` (any directory this run alone uses) the estimator
-journals its inputs there and a respawned estimator loses nothing (docs/NODES.md, "Restart
-without loss").
+and the results node journal there (a file each) and a respawned one loses nothing
+(docs/NODES.md, "Restart without loss").
 """
 
 import os
@@ -44,7 +44,7 @@ def generate_launch_description() -> LaunchDescription:
             DeclareLaunchArgument(
                 'journal_dir',
                 default_value='',
-                description="the estimator's input journal directory ('' = none)",
+                description="journal directory of the estimator and results node ('' = none)",
             ),
             # the processing nodes first, so that they listen when the simulator streams
             Node(
@@ -72,7 +72,7 @@ def generate_launch_description() -> LaunchDescription:
                 package='orbit_tracking',
                 executable='results',
                 name='results',
-                parameters=[os.path.join(config, 'results.yaml')],
+                parameters=[os.path.join(config, 'results.yaml'), {'journal_dir': journal_dir}],
                 output='screen',
                 respawn=True,
                 respawn_delay=1.0,

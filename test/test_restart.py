@@ -13,6 +13,7 @@ buffered are lost.
 from __future__ import annotations
 
 import os
+import re
 import signal
 import time
 from pathlib import Path
@@ -29,9 +30,24 @@ ALPHA = 0.01
 killed pass's covariance."""
 
 
+@pytest.fixture(scope='module')
+def clean_pass(tmp_path_factory):
+    """The clean pass both kill tests compare with (10x: the results do not depend on the
+    replay speed)."""
+    from orbit_tracking.tools.bench.restart import RESTART_BAG, run_pass
+
+    return run_pass(
+        DATA / 'bags' / RESTART_BAG,
+        tmp_path_factory.mktemp('clean'),
+        rate=10.0,
+        journal=JOURNAL,
+        domain_id=int(os.environ['ROS_DOMAIN_ID']),
+    )
+
+
 @pytest.mark.dds
 @pytest.mark.timeout(300)
-def test_sigkill_of_the_estimator_mid_pass_and_restart_publishes_every_state(tmp_path):
+def test_sigkill_of_the_estimator_mid_pass_and_restart_publishes_every_state(tmp_path, clean_pass):
     """The clean pass (10x: the results do not depend on the replay speed) against a pass at
     1x in which the estimator is SIGKILLed once its first window is out and checkpointed,
     and started again 1 s later with the same command line.
@@ -48,7 +64,7 @@ def test_sigkill_of_the_estimator_mid_pass_and_restart_publishes_every_state(tmp
     bag = DATA / 'bags' / RESTART_BAG
     domain = int(os.environ['ROS_DOMAIN_ID'])
     start = time.monotonic()
-    clean = run_pass(bag, tmp_path / 'clean', rate=10.0, journal=JOURNAL, domain_id=domain)
+    clean = clean_pass
     killed = run_pass(
         bag,
         tmp_path / 'killed',
@@ -88,6 +104,47 @@ def test_sigkill_of_the_estimator_mid_pass_and_restart_publishes_every_state(tmp
     assert killed.results['states_already_final'] == '0', report
     # close to the clean pass, within the killed pass's own covariance
     assert cmp['max_diff_over_sigma'] <= z_bound, report
+
+
+@pytest.mark.dds
+@pytest.mark.timeout(300)
+def test_sigkill_of_the_results_node_mid_pass_and_restart_publishes_every_state_once(
+    tmp_path, clean_pass
+):
+    """The results node SIGKILLed at 1x once two windows are out (it then holds the tail of
+    the second, which no later window covers whole; the second may still be in flight to
+    it) and started again 1 s later on its journal: every state of the clean pass is published once, with the clean values (the
+    estimator was not touched, so the windows are the clean ones)."""
+    from orbit_tracking.tools.bench.restart import RESTART_BAG, compare_passes, run_pass
+
+    killed = run_pass(
+        DATA / 'bags' / RESTART_BAG,
+        tmp_path / 'killed',
+        rate=1.0,
+        journal=JOURNAL,
+        kill_after_windows=2,
+        restart_after=1.0,
+        kill_signal=signal.SIGKILL,
+        kill_node='results',
+        domain_id=int(os.environ['ROS_DOMAIN_ID']),
+    )
+    cmp = compare_passes(clean_pass, killed)
+    report = (
+        f'results killed at data time {killed.kill_data_s:.2f} s after '
+        f'{killed.windows_before_kill} window(s), back at {killed.ready_data_s:.2f} s; {cmp}'
+    )
+    print(report)
+    for label, text in killed.logs.items():
+        assert TRACEBACK not in text, f'{label}:\n{text[-5000:]}'
+    assert killed.windows_before_kill == 2 and killed.kill_data_s < 45.0, report
+    if JOURNAL:
+        # the victim journaled one or two windows (the second may have died in flight);
+        # the estimator's kept windows came again and those taken before were skipped
+        assert re.search(r'journal .*: [12] window\(s\) replayed', killed.logs['results_2'])
+        assert int(killed.results['windows_repeated']) >= 1, killed.results
+    assert cmp['states_clean'] == 300, report
+    assert cmp['lost'] == 0 and cmp['extra'] == 0 and cmp['published_twice'] == 0, report
+    assert cmp['max_position_diff_m'] <= 1e-6, report
 
 
 def _window(t0, t1, offset, tb):
@@ -150,7 +207,7 @@ def test_results_wait_for_an_estimator_that_went_away_and_blend_across_its_resta
 
     def publisher():
         pub = rclpy_node.create_publisher(
-            PointCloud2, f'{ns}/estimator/window_states', qos.STATE_STREAM
+            PointCloud2, f'{ns}/estimator/window_states', qos.window_stream(16)
         )
         spin_until(rclpy_node, lambda: pub.get_subscription_count() > 0, 20, 'the results node')
         return pub
@@ -227,15 +284,15 @@ def test_an_estimator_started_on_its_journal_takes_back_buffer_schedule_and_time
     """In one process, no DDS traffic: an estimator fills its buffer, hands out its first
     window and checkpoints; a second one started on the same journal has the same buffer
     (observations of every later window identical), window schedule, time base, world frame
-    and fixed-station poses, holds its window publishers until the readers are back, and
-    starts its journal afresh on a time reset."""
+    and fixed-station poses, offers its windows to readers that join later (transient local),
+    and starts its journal afresh on a time reset."""
     import rclpy
+    from rclpy.qos import DurabilityPolicy
     from test_journal import _feed, _same_observations
 
     from orbit_tracking.core.data.journaled_buffer import JournaledBuffer
     from orbit_tracking.ros.conversions import TimeBase
     from orbit_tracking.ros.estimator_node import EstimatorNode
-    from orbit_tracking.ros.journal import HeldPublisher
 
     rclpy.init(
         args=['--ros-args', '-p', f'journal_dir:={tmp_path}']
@@ -243,9 +300,10 @@ def test_an_estimator_started_on_its_journal_takes_back_buffer_schedule_and_time
     )
     try:
         a = EstimatorNode()
-        assert isinstance(a.buffer, JournaledBuffer) and not isinstance(
-            a.window_pub, HeldPublisher
-        )
+        assert isinstance(a.buffer, JournaledBuffer)
+        for pub in (a.window_pub, a.residual_pub):
+            assert pub.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+            assert pub.qos_profile.depth == 16
         a.timebase = TimeBase.from_seconds(1_700_000_000.0)
         a.world_frame = 'earth'
         _feed(a.buffer, np.random.default_rng(5))  # 30 s of inputs
@@ -267,10 +325,109 @@ def test_an_estimator_started_on_its_journal_takes_back_buffer_schedule_and_time
             _same_observations(a.buffer, b.buffer, t0, t1)
         assert b.buffer.latest_time() == a.buffer.latest_time()
         assert set(b._fixed_states) == {'cw01', 'opt01'} and {'cw01', 'opt01'} <= set(b.subs)
-        assert isinstance(b.window_pub, HeldPublisher) and not b.flushed
+        assert not b.flushed
         b.buffer = b.journal.fresh_buffer()  # what a time reset does
         assert isinstance(b.buffer, JournaledBuffer) and b.journal.journal.n_records == 0
         b.journal.journal.close()
         b.destroy_node()
     finally:
         rclpy.try_shutdown()
+
+
+def _results_pass(windows, journal_dir=None, flush=True, counts=None):
+    """Feed ``windows`` to a results node in this process (``journal_dir``: with its
+    journal); (stamp ns, position) of every trajectory/states message it published, its
+    journal opening included. Returns without a flush, as a killed node would, unless
+    ``flush``; ``counts`` (a dict) receives the node's counters."""
+    import rclpy
+    from rclpy.publisher import Publisher
+
+    from orbit_tracking.ros.conversions import stamp_ns
+    from orbit_tracking.ros.results_node import ResultsNode
+
+    got: list[tuple[int, tuple[float, float, float]]] = []
+    real = Publisher.publish
+
+    def capture(pub, msg):
+        if pub.topic_name == '/trajectory/states':
+            p = msg.pose.pose.position
+            got.append((stamp_ns(msg.header.stamp), (p.x, p.y, p.z)))
+        real(pub, msg)
+
+    args = ['--ros-args', '-p', 'flush_after:=3600.0']
+    if journal_dir is not None:
+        args += ['-p', f'journal_dir:={journal_dir}']
+    Publisher.publish = capture
+    rclpy.init(args=args)
+    try:
+        node = ResultsNode()
+        for w in windows:
+            node._on_window(w)
+        if flush:
+            node._flush('end')
+        assert node.counts['internal_error'] == 0
+        if counts is not None:
+            counts.update(node.counts)
+        node.journal.close()
+        node.destroy_node()
+    finally:
+        Publisher.publish = real
+        rclpy.try_shutdown()
+    return got
+
+
+def test_a_results_node_started_on_its_journal_goes_on_where_it_was(tmp_path):
+    """In one process, no DDS traffic: a results node takes two windows and dies without a
+    flush (as under SIGKILL); a second one on the same journal takes the next two and
+    flushes. Together they publish the states of a node that took all four, once each, with
+    the same values; without the journal the second one loses the span the first held.
+    And a new pass that goes back in time restarts the trajectory after the journal's."""
+    from orbit_tracking.ros.conversions import TimeBase
+
+    tb = TimeBase(1_700_000_000 * 1_000_000_000)
+    windows = [_window(8.0 * k, 8.0 * k + 12.0, 0.5 * k, tb) for k in range(4)]
+    whole = _results_pass(windows)
+    first = _results_pass(windows[:2], tmp_path / 'j', flush=False)
+    second = _results_pass(windows[2:], tmp_path / 'j')
+    assert len(whole) == 361 and first  # 0-36 s at 0.1 s
+    assert [s for s, _ in first + second] == [s for s, _ in whole]
+    np.testing.assert_allclose([p for _, p in first + second], [p for _, p in whole], atol=1e-9)
+    # the control: without a journal the held span is lost
+    first = _results_pass(windows[:2], flush=False)
+    second = _results_pass(windows[2:])
+    assert len(first) + len(second) < len(whole)
+    # a later pass that starts over (windows on another schedule): a time line going back,
+    # not filtered by the old marks
+    later = [_window(8.0 * k + 0.5, 8.0 * k + 12.5, 0.5 * k, tb) for k in range(2)]
+    again = _results_pass(later, tmp_path / 'j')
+    assert again and [s for s, _ in again] == [s for s, _ in _results_pass(later)]
+
+
+def test_a_restarted_results_node_skips_the_windows_the_estimator_sends_again(tmp_path):
+    """The estimator keeps its last windows for readers that join (window_history), so a
+    restarted results node first receives windows its predecessor took, some of them long
+    compacted out of its journal: they are skipped as repeats (not a time line going back),
+    and the window that was in flight when it died is taken. Together the two processes
+    publish the states of one that never died, once each."""
+    from orbit_tracking.core.data.journal import scan_journal
+    from orbit_tracking.ros.conversions import TimeBase
+
+    tb = TimeBase(1_700_000_000 * 1_000_000_000)
+    windows = [_window(8.0 * k, 8.0 * k + 12.0, 0.5 * k, tb) for k in range(8)]
+    whole = _results_pass(windows)
+    first = _results_pass(windows[:6], tmp_path / 'j', flush=False)
+    (path,) = (tmp_path / 'j').rglob('*.journal')
+    kept = sum(r.kind == 'window' for r in scan_journal(path).records)
+    assert kept < 5, 'the journal must have let go of the early windows for this test'
+    counts = {}
+    # the estimator's history: windows 1-6, the last of them never reached the first node
+    second = _results_pass(windows[1:], tmp_path / 'j', counts=counts)
+    assert counts['windows_repeated'] == 5 and not counts.get('restarts'), counts
+    assert [s for s, _ in first + second] == [s for s, _ in whole]
+    np.testing.assert_allclose([p for _, p in first + second], [p for _, p in whole], atol=1e-9)
+    # the control: the same windows arriving later on a running node are a time line that
+    # went back (a bag replayed again), not repeats
+    counts = {}
+    again = _results_pass(windows[:6] + windows[1:], counts=counts)
+    assert not counts.get('windows_repeated') and counts['restarts'] == 1, counts
+    assert len(again) > len(whole)

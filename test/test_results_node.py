@@ -396,10 +396,10 @@ def test_results_node_publishes_the_stitched_estimate_once_final_in_world_and_la
             Path, f'{ns}/trajectory/path', paths[ns].append, qos.LATCHED
         )
         pubs[ns] = rclpy_node.create_publisher(
-            PointCloud2, f'{ns}/estimator/window_states', qos.STATE_STREAM
+            PointCloud2, f'{ns}/estimator/window_states', qos.window_stream(16)
         )
         res_pubs[ns] = rclpy_node.create_publisher(
-            DiagnosticArray, f'{ns}/estimator/window_residuals', qos.STATE_STREAM
+            DiagnosticArray, f'{ns}/estimator/window_residuals', qos.window_stream(16)
         )
 
     def on_diag(msg: DiagnosticArray) -> None:

@@ -295,11 +295,22 @@ class EstimatorNode(StationInputs):
         self.last_ok = True
         self.last_data = time.monotonic()
         self.flushed = True
-        self.window_pub = self.create_publisher(
-            PointCloud2, 'estimator/window_states', qos.STATE_STREAM
+        history = qos.window_stream(
+            declare(
+                self,
+                'window_history',
+                16,
+                'Windows (and their residual statistics) kept for a reader that (re)joins: a '
+                'results node restarted while fewer windows than this went out gets every one '
+                'it missed, those in flight when it died included.',
+                read_only=True,
+                min_value=1,
+                max_value=1000,
+            )
         )
+        self.window_pub = self.create_publisher(PointCloud2, 'estimator/window_states', history)
         self.residual_pub = self.create_publisher(
-            DiagnosticArray, 'estimator/window_residuals', qos.STATE_STREAM
+            DiagnosticArray, 'estimator/window_residuals', history
         )
         self.residuals_after: float | None = None  # end of the last window reported
         self.bias_pub = self.create_publisher(DiagnosticArray, 'trajectory/biases', qos.LATCHED)

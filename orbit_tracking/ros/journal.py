@@ -12,11 +12,11 @@ then compacts the file down to what a later window still needs (the scheduler's
 
 At start the node replays the journal into its buffer, takes back the time base, world
 frame, fixed-station poses and scheduler state, prunes as it had pruned, subscribes at once
-to the stations it had (not a discovery period later), and logs what it recovered. What it
-publishes on ``estimator/window_states`` and ``estimator/window_residuals`` is held
-(:class:`HeldPublisher`) until those topics have as many readers as at the last checkpoint,
-at most ``HOLD_MAX`` seconds: a window solved from the replayed inputs right after the start
-would otherwise go out before discovery matched the results node. A node killed at any
+to the stations it had (not a discovery period later), and logs what it recovered. A window
+solved from the replayed inputs right after the start goes out before discovery has matched
+the results node; it reaches it all the same, since ``estimator/window_states`` and
+``estimator/window_residuals`` keep their last messages for readers that join
+(:func:`~orbit_tracking.ros.qos.window_stream`). A node killed at any
 moment therefore publishes, once started again, every window it had not published, from the
 inputs it had; only messages sent while no estimator process was running are missing (a gap
 in the data, estimated across like any gap), and the first window after the restart starts
@@ -53,16 +53,12 @@ from orbit_tracking.core.time import format_stamp
 from orbit_tracking.ros.conversions import StationStateSample, TimeBase
 from orbit_tracking.ros.parameters import declare
 
-__all__ = ['CHECKPOINT_PERIOD', 'HOLD_MAX', 'EstimatorJournal', 'HeldPublisher', 'journal_path']
+__all__ = ['CHECKPOINT_PERIOD', 'EstimatorJournal', 'journal_path']
 
 CHECKPOINT_PERIOD = 0.2
 """Seconds between checkpoint checks (scheduler moved on, window acknowledged, fsync)."""
 
-HOLD_MAX = 10.0
-"""Wall seconds at most that windows solved after a replay wait for the readers."""
-
 _NO_ACK = Duration(seconds=0)
-_HELD = ('window_pub', 'residual_pub')  # the node's publishers held after a replay
 
 
 def journal_path(directory: str | Path, node_name: str, domain_id: int) -> Path:
@@ -73,52 +69,6 @@ def journal_path(directory: str | Path, node_name: str, domain_id: int) -> Path:
         raise ValueError(f'node name {node_name!r} has no name')
     base = Path(directory).expanduser() / f'domain{int(domain_id)}'
     return base.joinpath(*parts[:-1], parts[-1] + '.journal')
-
-
-class HeldPublisher:
-    """Stands in for a publisher of a node that replayed its journal: what it publishes is
-    held until the publisher has as many readers as before the restart (or ``HOLD_MAX``
-    seconds have passed), then sent in order. A window solved from the replayed inputs right
-    after the start would otherwise go out before discovery has matched the readers, and a
-    volatile reader never gets what was sent before it matched."""
-
-    def __init__(self, pub: Any, readers: int, clock: Any = time.monotonic) -> None:
-        self.pub = pub
-        self.readers = max(int(readers), 1)
-        self._clock = clock
-        self._until = clock() + HOLD_MAX
-        self.held: list[Any] | None = []
-
-    def publish(self, msg: Any) -> None:
-        if self.held is None:
-            self.pub.publish(msg)
-            return
-        self.held.append(msg)
-        self.release()
-
-    def release(self) -> str:
-        """Send what is held once the readers are back; returns a note when it did."""
-        if self.held is None:
-            return ''
-        n = self.pub.get_subscription_count()
-        timed_out = self._clock() >= self._until
-        if n < self.readers and not timed_out:
-            return ''
-        held, self.held = self.held, None
-        for msg in held:
-            self.pub.publish(msg)
-        if n < self.readers:
-            return (
-                f'{n} of the {self.readers} reader(s) of {self.pub.topic_name} before the '
-                f'restart matched within {HOLD_MAX:g} s; {len(held)} message(s) sent anyway'
-            )
-        return f'{len(held)} message(s) held for {self.pub.topic_name} sent' if held else ''
-
-    def wait_for_all_acked(self, timeout: Duration) -> bool:
-        return self.held is None and bool(self.pub.wait_for_all_acked(timeout))
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self.pub, name)
 
 
 class EstimatorJournal:
@@ -222,10 +172,6 @@ class EstimatorJournal:
         if summary.data_records:
             node.flushed = False  # the end-of-stream flush covers what was replayed
             node.last_data = time.monotonic()
-            readers = (summary.state or {}).get('readers') or {}
-            for attr in _HELD:
-                pub = getattr(node, attr)
-                setattr(node, attr, HeldPublisher(pub, int(readers.get(attr) or 1)))
         s = node.scheduler
         self._saved = (s.last, s.next_t0, node.residuals_after)
         failed = {k: v for k, v in summary.counts.items() if k.startswith(('failed_', 'unknown_'))}
@@ -283,11 +229,6 @@ class EstimatorJournal:
         j, node = self.journal, self.node
         if j is None:
             return
-        for pub in (getattr(node, a) for a in _HELD):
-            if isinstance(pub, HeldPublisher):
-                note = pub.release()
-                if note:
-                    node.get_logger().info(f'journal: {note}')
         s = node.scheduler
         key = (s.last, s.next_t0, node.residuals_after)
         try:
@@ -337,7 +278,6 @@ class EstimatorJournal:
             'next_t0': s.next_t0,
             'residuals_after': node.residuals_after,
             'ref_ns': None if node.timebase is None else node.timebase.ref_ns,
-            'readers': {a: getattr(node, a).get_subscription_count() for a in _HELD},
         }
         data = json.dumps(state).encode()
         self.journal.append(JournalRecord('state', '', -math.inf, data, sticky=True), sync=True)

@@ -20,6 +20,8 @@ __all__ = [
     'STATE_STREAM',
     'STATION_STATE_FIXED',
     'STATION_STATE_MOVING',
+    'WINDOWS_SUB',
+    'window_stream',
 ]
 
 MEASUREMENTS_PUB = QoSProfile(
@@ -75,6 +77,28 @@ DIAGNOSTICS = QoSProfile(
     reliability=ReliabilityPolicy.RELIABLE,
     durability=DurabilityPolicy.VOLATILE,
 )
+
+
+def window_stream(depth: int) -> QoSProfile:
+    """``estimator/window_states`` and ``estimator/window_residuals`` as the estimator
+    offers them: reliable, transient local, the last ``depth`` messages kept. A results node
+    that (re)joins gets the windows it missed, those in flight when it was killed included:
+    a journal on the reader's side cannot hold a message it never took."""
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=int(depth),
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    )
+
+
+WINDOWS_SUB = QoSProfile(
+    history=HistoryPolicy.KEEP_ALL,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+"""The results node's reader of the window topics: keep-all, and transient local so that the
+estimator's kept windows reach it when it (re)joins. A volatile writer does not match it."""
 
 CLOCK = QoSProfile(
     history=HistoryPolicy.KEEP_LAST,

@@ -18,24 +18,25 @@ launch frame (``launch_site`` or the ``scenario``'s launch point).
 
 When the estimator's publisher goes away (it exits), the states held wait
 ``estimator_gone_grace`` seconds for it to come back (a restart), so that its next window
-hands over from the last one as usual.
+hands over from the last one as usual. With ``journal_dir`` a results node killed and
+started again goes on where it was (:mod:`~orbit_tracking.ros.results_journal`).
 
 Example::
 
     ros2 run orbit_tracking results --ros-args -p output_frame:=launch -p scenario:=seed000_s1
 
-The module is a little over the project's ~600-line guide: about 100 lines are parameter
-declarations (each with its description and range) and about 120 the two diagnostics
-statuses; the stitching is :class:`~orbit_tracking.core.estimation.stitcher.
-TrajectoryStitcher` and the choice of windows :class:`~orbit_tracking.core.estimation.
-stitcher.TimeLine`.
+The module is over the project's ~600-line guide: about 100 lines are parameter
+declarations (each with its description and range), about 120 the two diagnostics
+statuses and 25 the journal's resume; the stitching is :class:`~orbit_tracking.core.
+estimation.stitcher.TrajectoryStitcher` and the choice of windows :class:`~orbit_tracking.
+core.estimation.stitcher.TimeLine`.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable
 
 import numpy as np
@@ -75,6 +76,7 @@ from orbit_tracking.ros.conversions import (
 )
 from orbit_tracking.ros.guard import guarded
 from orbit_tracking.ros.parameters import declare
+from orbit_tracking.ros.results_journal import ResultsJournal
 from orbit_tracking.ros.runner import run_node
 
 __all__ = ['OUTPUT_FRAMES', 'ResultsNode', 'main']
@@ -83,6 +85,8 @@ OUTPUT_FRAMES = ('world', 'launch')
 """Values of the ``output_frame`` parameter."""
 
 _SAME_TIME = 1e-6  # s: two windows ending within this are the same window
+_SEEN_MAX = 64  # windows of the time line remembered, to know the estimator's kept ones
+_SEEN_NS = 1000  # ns: a window whose start and end are this close to one seen is that one
 _MAX_RESIDUAL_STATIONS = 256  # residual sums kept for at most this many station ids
 _RMS_WARN = 3.0  # whitened RMS above this: the sigmas (or the model) do not fit the data
 
@@ -230,20 +234,27 @@ class ResultsNode(Node):
         self.residual_totals: dict[str, ResidualStats] = {}
         self.residual_last: dict[str, WindowResiduals] = {}
         self.residual_windows: Counter[str] = Counter()
+        self.seen: deque[tuple[int, int]] = deque(maxlen=_SEEN_MAX)
+        """(start, end) stamps [ns] of the windows the time line took, newest last."""
+        self.expect_repeats = True
+        """Until the first new window after the start: the estimator's kept windows arrive
+        first (``window_history``), and those this time line took before a restart (its
+        journal) are repeats, not a time line going back."""
 
         self.states_pub = self.create_publisher(Odometry, 'trajectory/states', qos.STATE_STREAM)
         self.path_pub = self.create_publisher(Path, 'trajectory/path', qos.LATCHED)
         self.diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', qos.DIAGNOSTICS)
         self.create_subscription(
-            PointCloud2, 'estimator/window_states', self._on_window, qos.MEASUREMENTS_SUB
+            PointCloud2, 'estimator/window_states', self._on_window, qos.WINDOWS_SUB
         )
         self.create_subscription(
             DiagnosticArray,
             'estimator/window_residuals',
             lambda m: self._guarded('window residuals', self._on_residuals, m),
-            qos.MEASUREMENTS_SUB,
+            qos.WINDOWS_SUB,
         )
         self.create_service(Trigger, '~/flush', self._on_flush)
+        self.journal = ResultsJournal(self)
         self.create_timer(0.5, self._tick)
         self.create_timer(1.0, self._publish_diagnostics)
         where = "the windows' world frame"
@@ -253,6 +264,28 @@ class ResultsNode(Node):
             f'stitching estimator/window_states into trajectory/states in {where}; states '
             f'held at the end of the stream are published after {self.flush_after:g} s '
             'without a window (or on ~/flush)'
+        )
+        self._resume()
+
+    def _resume(self) -> None:
+        """With a journal, go on where the last process on it was (see
+        :mod:`~orbit_tracking.ros.results_journal`)."""
+        j = self.journal
+        if not j.enabled:
+            return
+        if j.problem:
+            self.get_logger().warning(f'journal {j.journal.path}: {j.problem}')
+        self.seen.extend(j.seen)
+        n = 0
+        for msg in j.windows():
+            self._add_window(msg)
+            n += 1
+        marks = ', '.join(
+            f'target {tid} up to {format_stamp(ns, 0.0)}' for tid, ns in sorted(j.marks.items())
+        )
+        self.get_logger().info(
+            f'journal {j.journal.path}: {n} window(s) replayed'
+            + (f'; states published before: {marks}' if marks else '; starting afresh')
         )
 
     def _launch_frame(
@@ -344,6 +377,17 @@ class ResultsNode(Node):
             self._reject('invalid_window', f'window states rejected: {exc}')
             return
         t0, t1 = ws.t0, ws.t1
+        key = (tb.ref_ns + round(t0 * 1e9), tb.ref_ns + round(t1 * 1e9))
+        if not self.journal.replaying:
+            if self.expect_repeats and self._seen_before(key):
+                self.counts['windows_repeated'] += 1
+                self.get_logger().info(
+                    f'window [{self._stamp(t0)}, {self._stamp(t1)}] taken before the restart: '
+                    'skipped',
+                    throttle_duration_sec=5.0,
+                )
+                return
+            self.expect_repeats = False
         last = self.stitcher.last_end
         if abs(t1 - last) <= _SAME_TIME:
             self._reject('duplicate_window', f'window ending at {self._stamp(t1)} received twice')
@@ -362,6 +406,17 @@ class ResultsNode(Node):
             )
         for item in use:
             self._use_window(*item)
+        # journaled once taken: a restart of the time line (in _use_window) clears the
+        # journal, and a window lost by a kill before this line comes again from the
+        # estimator's history
+        if not self._seen_before(key):
+            self.seen.append(key)
+        self.journal.received(msg, key[1] * 1e-9, self.seen)
+
+    def _seen_before(self, key: tuple[int, int]) -> bool:
+        return any(
+            abs(a - key[0]) <= _SEEN_NS and abs(b - key[1]) <= _SEEN_NS for a, b in self.seen
+        )
 
     def _use_window(self, ws: WindowStates, windows: list[SampledWindow], tb: TimeBase) -> None:
         t0, t1 = ws.t0, ws.t1
@@ -427,6 +482,8 @@ class ResultsNode(Node):
             pub.publish(self._path_msg(tid))  # empty: RViz and late joiners drop the old pass
         self.path_pub.publish(self._path_msg(-1))
         self.stitcher.reset()
+        self.journal.clear()
+        self.seen.clear()
         self.world_frame = ''
         self.last_window = None
         self.counts['restarts'] += 1
@@ -472,8 +529,17 @@ class ResultsNode(Node):
     # -- output --------------------------------------------------------------------
     def _publish(self, final: list[FinalStates], tb: TimeBase) -> int:
         n = 0
+        until: dict[int, int] = {}
         for fs in final:
             tid = fs.target_id
+            stamps = tb.ref_ns + np.round(fs.time * 1e9).astype(np.int64)
+            new = self.journal.unpublished(tid, stamps)
+            if not np.all(new):  # published by the process before (journal)
+                fs = FinalStates(tid, fs.time[new], fs.state[new], fs.covariance[new])
+                stamps = stamps[new]
+                if not len(fs):
+                    continue
+            until[tid] = int(stamps[-1])
             x, cov = fs.state, fs.covariance
             frame = self.world_frame
             if self.launch is not None:
@@ -503,6 +569,7 @@ class ResultsNode(Node):
             if tid == self._path_target():
                 self.path_pub.publish(self._path_msg(tid))
         self.counts['states_published'] += n
+        self.journal.published(until)
         return n
 
     @staticmethod
@@ -615,6 +682,7 @@ class ResultsNode(Node):
         values: dict[str, object] = {
             'windows_received': c['windows_received'],
             'windows_used': c['windows_used'],
+            'windows_repeated': c['windows_repeated'],
             'states_published': c['states_published'],
             'states_held': self.stitcher.held(),
             'states_already_final': sc['states_already_final'],
@@ -623,6 +691,9 @@ class ResultsNode(Node):
             'flushes': c['flushes'],
             'restarts': c['restarts'],
             'estimator_gone': c['estimator_gone'],
+            **(
+                {'journal_write_errors': self.journal.write_errors} if self.journal.enabled else {}
+            ),
             'last_window_start': ''
             if self.last_window is None
             else self._stamp(self.last_window[0]),

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from orbit_tracking.tools.bench.fault_messages import NODES, WINDOWS, topic_type
+from orbit_tracking.tools.bench.fault_messages import NODES, RESIDUALS, WINDOWS, topic_type
 
 __all__ = [
     'INIT_LOCK',
@@ -70,6 +70,7 @@ _SYMPTOMS = frozenset(
         'residuals_failed',
         'states_already_final',
         'missing_samples',
+        'windows_repeated',
     }
 )
 _NOT_COUNTERS = ('last_', 'used_', 'withheld_', 'buffer_', 'processing_', 'fix_age_', 'newest_')
@@ -148,6 +149,8 @@ class Participants:
         def profile(topic: str, latched: bool) -> Any:
             if latched:
                 return qos.STATION_STATE_FIXED
+            if topic in (WINDOWS, RESIDUALS):  # as the estimator offers them
+                return qos.window_stream(16)
             return qos.MEASUREMENTS_PUB if topic.endswith('/measurements') else qos.STATE_STREAM
 
         self.pubs: dict[str, Any] = {}

@@ -60,6 +60,11 @@ RESTART_WINDOWS: Mapping[str, object] = {
 """The estimator's windows: four over 30 s, three hand-overs (as the regression test)."""
 
 _PROCESSING = ('triangulation', 'estimator', 'results')
+_OUTPUT_TOPIC = {
+    'triangulation': '/triangulation/fixes',
+    'estimator': '/estimator/window_states',
+    'results': '/trajectory/states',
+}
 _OUTPUT_STEP = 0.1
 
 
@@ -162,6 +167,7 @@ def run_pass(
     kill_delay: float = 0.0,
     restart_after: float = 1.0,
     kill_signal: int = signal.SIGKILL,
+    kill_node: str = 'estimator',
     estimator_params: Mapping[str, object] | None = None,
     results_params: Mapping[str, object] | None = None,
     domain_id: int | None = None,
@@ -179,7 +185,7 @@ def run_pass(
     rate : float
         Replay speed.
     journal : bool
-        Run the estimator with ``journal_dir`` (else without a journal).
+        Run the estimator and the results node with ``journal_dir`` (else without).
     kill_after_windows : int, optional
         Kill the estimator ``kill_delay`` wall seconds after this many windows arrived
         here, and start it again ``restart_after`` seconds later; None: a clean pass.
@@ -193,6 +199,9 @@ def run_pass(
         window is solved again after the restart.
     kill_signal : int
         ``signal.SIGKILL`` (default) or ``signal.SIGTERM``.
+    kill_node : str
+        The node killed and started again: ``estimator`` (default), ``results`` or
+        ``triangulation``.
     estimator_params, results_params : mapping, optional
         Parameters on top of the defaults of this module.
     domain_id : int, optional
@@ -220,6 +229,8 @@ def run_pass(
     )
     from orbit_tracking.tools.live import NODES, _env, _stop, node_command, package_location
 
+    if kill_node not in _PROCESSING:
+        raise ValueError(f'kill_node must be one of {_PROCESSING}; got {kill_node!r}')
     bag = Path(bag)
     work = Path(work_dir)
     work.mkdir(parents=True, exist_ok=True)
@@ -241,7 +252,12 @@ def run_pass(
             **(estimator_params or {}),
         },
         # the tail is flushed on request (~/flush) once the last window is in
-        'results': {**ref, 'flush_after': 3600.0, **(results_params or {})},
+        'results': {
+            **ref,
+            'flush_after': 3600.0,
+            **({'journal_dir': str(work / 'journal')} if journal else {}),
+            **(results_params or {}),
+        },
     }
     spec = {s.executable: s for s in NODES}
     commands = {exe: node_command(spec[exe], where, overrides[exe]) for exe in _PROCESSING}
@@ -271,7 +287,7 @@ def run_pass(
 
     node.create_subscription(Odometry, '/trajectory/states', states.append, qos.MEASUREMENTS_SUB)
     node.create_subscription(
-        PointCloud2, '/estimator/window_states', windows.append, qos.MEASUREMENTS_SUB
+        PointCloud2, '/estimator/window_states', windows.append, qos.WINDOWS_SUB
     )
     node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, qos.DIAGNOSTICS)
     node.create_subscription(PointCloud2, probe_topic, on_probe, qos.MEASUREMENTS_SUB)
@@ -295,7 +311,7 @@ def run_pass(
             dead = {
                 k: p.returncode
                 for k, p in procs.items()
-                if k not in ('replay', 'estimator_killed') and p.poll() is not None
+                if k not in ('replay', f'{kill_node}_killed') and p.poll() is not None
             }
             if dead:
                 raise RuntimeError(f'node process(es) exited {dead} while waiting for {what}')
@@ -338,7 +354,7 @@ def run_pass(
                     max(deadline - time.monotonic(), 1.0),
                     f'data time {kill_at:g} s before the kill',
                 )
-            if kill_after_checkpoint:
+            if kill_after_checkpoint and kill_node == 'estimator':
                 t1 = cloud_to_window_states(windows[kill_after_windows - 1], tb).t1
                 spin_until(
                     lambda: _checkpointed(work / 'journal', t1),
@@ -348,34 +364,38 @@ def run_pass(
             end = time.monotonic() + kill_delay
             spin_until(lambda: time.monotonic() >= end, kill_delay + 1.0, 'the kill delay')
             out.windows_before_kill = len(windows)
-            procs['estimator'].send_signal(kill_signal)
-            procs['estimator'].wait(10)
+            procs[kill_node].send_signal(kill_signal)
+            procs[kill_node].wait(10)
             killed_at = time.monotonic()
             out.kill_data_s = data_now[0]
-            procs['estimator_killed'] = procs.pop('estimator')
+            procs[f'{kill_node}_killed'] = procs.pop(kill_node)
             say(
-                f'estimator killed ({signal.Signals(kill_signal).name}) at data time '
+                f'{kill_node} killed ({signal.Signals(kill_signal).name}) at data time '
                 f'{out.kill_data_s:.2f} s, after {len(windows)} window(s)'
             )
             end = time.monotonic() + restart_after
             spin_until(lambda: time.monotonic() >= end, restart_after + 1.0, 'the restart delay')
-            start('estimator_2', commands['estimator'])
+            start(f'{kill_node}_2', commands[kill_node])
             spin_until(
-                lambda: node.count_publishers('/estimator/window_states') >= 1,
+                lambda: node.count_publishers(_OUTPUT_TOPIC[kill_node]) >= 1,
                 60,
-                'the restarted estimator',
+                f'the restarted {kill_node}',
             )
-            estimator.clear()
-            spin_until(
-                lambda: float(estimator.get('measurement_messages', 0)) > 0,
-                60,
-                'the first measurement message at the restarted estimator',
-            )
+            if kill_node == 'estimator':
+                estimator.clear()
+                spin_until(
+                    lambda: float(estimator.get('measurement_messages', 0)) > 0,
+                    60,
+                    'the first measurement message at the restarted estimator',
+                )
+            elif kill_node == 'results':
+                results.clear()
+                spin_until(lambda: bool(results), 60, 'the restarted results node')
             out.restart_wall_s = time.monotonic() - killed_at
             out.ready_data_s = data_now[0]
             say(
-                f'estimator back {out.restart_wall_s:.1f} s after the kill (its first '
-                f'measurement message), at data time {out.ready_data_s:.2f} s'
+                f'{kill_node} back {out.restart_wall_s:.1f} s after the kill, at data time '
+                f'{out.ready_data_s:.2f} s'
             )
         last_end = [-math.inf]
 
@@ -511,6 +531,7 @@ def measure_restart_loss(
     kill_delay: float = 0.0,
     restart_after: float = 1.0,
     kill_signal: int = signal.SIGKILL,
+    kill_node: str = 'estimator',
     clean: PassResult | None = None,
     clean_rate: float = 10.0,
     estimator_params: Mapping[str, object] | None = None,
@@ -519,7 +540,8 @@ def measure_restart_loss(
     domain_id: int | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
-    """States lost to a kill and restart of the estimator mid-pass.
+    """States lost to a kill and restart of a processing node (``kill_node``, default the
+    estimator) mid-pass.
 
     Runs a clean pass (at ``clean_rate``: the results do not depend on the replay speed;
     or takes ``clean``), then a pass at ``rate`` in which the estimator is killed once
@@ -566,10 +588,12 @@ def measure_restart_loss(
             kill_delay=kill_delay,
             restart_after=restart_after,
             kill_signal=kill_signal,
+            kill_node=kill_node,
             **common,
         )
     out: dict[str, Any] = {
         'bag': bag.name,
+        'node': kill_node,
         'rate': rate,
         'journal': journal,
         'signal': signal.Signals(kill_signal).name,
