@@ -113,8 +113,9 @@ def test_sigkill_of_the_results_node_mid_pass_and_restart_publishes_every_state_
 ):
     """The results node SIGKILLed at 1x once two windows are out (it then holds the tail of
     the second, which no later window covers whole; the second may still be in flight to
-    it) and started again 1 s later on its journal: every state of the clean pass is published once, with the clean values (the
-    estimator was not touched, so the windows are the clean ones)."""
+    it) and started again 1 s later on its journal: every state of the clean pass is
+    published once, with the clean values (the estimator was not touched, so the windows
+    are the clean ones)."""
     from orbit_tracking.tools.bench.restart import RESTART_BAG, compare_passes, run_pass
 
     killed = run_pass(
