@@ -148,6 +148,39 @@ def test_sigkill_of_the_results_node_mid_pass_and_restart_publishes_every_state_
     assert cmp['max_position_diff_m'] <= 1e-6, report
 
 
+@pytest.mark.dds
+@pytest.mark.timeout(300)
+def test_sigkill_of_the_triangulation_node_mid_pass_and_restart_loses_no_state(
+    tmp_path, clean_pass
+):
+    """The triangulation node SIGKILLed at 1x after the first window and started again 1 s
+    later (it keeps no journal: its fixes only seed the estimator's windows, which have
+    telemetry here): every state of the clean pass is published once, and the fixes go on
+    from the new process."""
+    from orbit_tracking.tools.bench.restart import RESTART_BAG, compare_passes, run_pass
+
+    killed = run_pass(
+        DATA / 'bags' / RESTART_BAG,
+        tmp_path / 'killed',
+        rate=1.0,
+        journal=JOURNAL,
+        kill_after_windows=1,
+        restart_after=1.0,
+        kill_signal=signal.SIGKILL,
+        kill_node='triangulation',
+        domain_id=int(os.environ['ROS_DOMAIN_ID']),
+    )
+    cmp = compare_passes(clean_pass, killed)
+    report = f'triangulation killed at data time {killed.kill_data_s:.2f} s; {cmp}'
+    print(report)
+    for label, text in killed.logs.items():
+        assert TRACEBACK not in text, f'{label}:\n{text[-5000:]}'
+    assert 'subscribed to station' in killed.logs['triangulation_2'], report
+    assert cmp['states_clean'] == 300, report
+    assert cmp['lost'] == 0 and cmp['extra'] == 0 and cmp['published_twice'] == 0, report
+    assert cmp['max_diff_over_sigma'] <= 1.0, report
+
+
 def _window(t0, t1, offset, tb):
     """Window states of a smooth trajectory on the 0.1 s grid of [t0, t1], shifted by
     ``offset`` metres (so that a blend is told from either window)."""

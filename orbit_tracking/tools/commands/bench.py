@@ -104,8 +104,11 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             select_faults,
         )
 
-        if not args.faults:  # the whole catalogue: the estimator restart row too
-            EXTRA_ROWS.append(lambda: _restart_row(None if args.quiet else print))
+        if not args.faults:  # the whole catalogue: a restart row per processing node too
+            for node in ('estimator', 'results', 'triangulation'):
+                EXTRA_ROWS.append(
+                    lambda node=node: _restart_row(node, None if args.quiet else print)
+                )
 
         suite = run_faults(
             select_faults(args.faults),
@@ -124,19 +127,23 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
-def _restart_row(progress: Callable[[str], None] | None) -> FaultResult:
-    """The fault table's restart row: the estimator SIGKILLed mid-pass and started again
-    1 s later, with its journal (:func:`~orbit_tracking.tools.bench.restart.
+def _restart_row(node: str, progress: Callable[[str], None] | None) -> FaultResult:
+    """A restart row of the fault table: ``node`` SIGKILLed mid-pass and started again 1 s
+    later, with the journals (:func:`~orbit_tracking.tools.bench.restart.
     measure_restart_loss`)."""
     from orbit_tracking.tools.bench.fault_catalogue import FaultClass
     from orbit_tracking.tools.bench.faults import FaultResult
     from orbit_tracking.tools.bench.restart import measure_restart_loss
 
-    r = measure_restart_loss(progress=progress)
+    # the results node after two windows: it then holds the tail of the second
+    r = measure_restart_loss(
+        kill_node=node, kill_after_windows=2 if node == 'results' else 1, progress=progress
+    )
     fault = FaultClass(
-        'estimator_sigkill_restart',
+        f'{node}_sigkill_restart',
         'restart',
-        'estimator killed (SIGKILL) mid-pass, started again 1 s later with its journal',
+        f'{node} killed (SIGKILL) mid-pass, started again 1 s later'
+        + ('' if node == 'triangulation' else ' with its journal'),
         (),
         (),
         lambda ref: [],
