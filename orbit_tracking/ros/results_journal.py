@@ -5,11 +5,15 @@ still blend into), and it has no memory of how far it had published. Without a j
 restarted node starts its trajectory at the first window it receives: the held span is
 lost, and whatever of the earlier windows it sees again is published twice.
 
-With ``journal_dir`` set the node appends every valid window it receives (the message as
-serialized on the wire, before the time line decides about it) and, after each
-publication, how far each target's states went out. A node started on the same journal
-feeds the windows still there through its time line and stitcher once more and publishes
-only states after those marks: the trajectory goes on with nothing lost and nothing twice.
+With ``journal_dir`` set the node appends every window its time line takes (the message as
+serialized on the wire), the list of the last windows taken, and, once every reader has
+acknowledged a publication, how far each target's states went out. A node started on the
+same journal feeds the windows still there through its time line and stitcher once more
+and publishes only states after those marks. A window it never took (in flight when it
+died) comes again from the estimator's kept windows; those it took come too and are
+skipped. The trajectory so goes on with nothing lost; a state handed to DDS but not yet
+acknowledged when the node died is published again, with the same values (a writer's queue
+dies with its process, so the alternative is a state that never arrives).
 
 The journal keeps the windows not wholly published and, of the others, the last one: a
 restarted node so knows the end of the time line, and a new pass that goes back in time
@@ -27,7 +31,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 from rclpy.serialization import deserialize_message, serialize_message
@@ -82,6 +86,7 @@ class ResultsJournal:
         self.seen: list[tuple[int, int]] = []
         """(start, end) stamps [ns] of the last windows the time line took (the newest
         record's), so that a restarted node knows the windows the estimator sends again."""
+        self._pending: dict[int, int] = {}
         self.replaying = False
         self.write_errors = 0
         """Appends that failed (disk full, ...): a restart may then lose or repeat states."""
@@ -140,13 +145,23 @@ class ResultsJournal:
         except OSError:
             self.write_errors += 1
 
-    def published(self, until_ns: dict[int, int]) -> None:
-        """States up to these stamps [ns] per target went out: mark it, and let go of the
-        windows wholly published (all but the last)."""
-        if self.journal is None or not until_ns:
+    def published(self, until_ns: dict[int, int], acked: Callable[[], bool]) -> None:
+        """States up to these stamps [ns] per target were handed to DDS: marked once
+        ``acked()`` says every reader has them (:meth:`commit`)."""
+        for tid, ns in until_ns.items():
+            self._pending[tid] = max(ns, self._pending.get(tid, -1))
+        self.commit(acked)
+
+    def commit(self, acked: Callable[[], bool]) -> None:
+        """Mark what :meth:`published` staged if ``acked()`` (call again until it is), and
+        let go of the windows wholly published (all but the last). Until then a restart
+        publishes those states again: a state may come twice, never not at all (a writer's
+        queue dies with its process)."""
+        if self.journal is None or not self._pending or not acked():
             return
+        pending, self._pending = self._pending, {}
         try:
-            for tid, ns in sorted(until_ns.items()):
+            for tid, ns in sorted(pending.items()):
                 if ns > self.marks.get(tid, -1):
                     self.marks[tid] = ns
                     data = str(ns).encode()
@@ -166,6 +181,7 @@ class ResultsJournal:
     def clear(self) -> None:
         """A new time line (the trajectory restarts): nothing of the old one is needed."""
         self.marks.clear()
+        self._pending.clear()
         self.seen.clear()
         if self.journal is not None:
             self.journal.clear()

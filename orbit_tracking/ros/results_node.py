@@ -43,6 +43,7 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Odometry, Path
+from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.publisher import Publisher
@@ -85,6 +86,7 @@ OUTPUT_FRAMES = ('world', 'launch')
 """Values of the ``output_frame`` parameter."""
 
 _SAME_TIME = 1e-6  # s: two windows ending within this are the same window
+_NO_WAIT = Duration(seconds=0)
 _SEEN_MAX = 64  # windows of the time line remembered, to know the estimator's kept ones
 _SEEN_NS = 1000  # ns: a window whose start and end are this close to one seen is that one
 _MAX_RESIDUAL_STATIONS = 256  # residual sums kept for at most this many station ids
@@ -490,6 +492,7 @@ class ResultsNode(Node):
 
     def _tick(self) -> None:
         now = time.monotonic()
+        self.journal.commit(self._states_acked)
         self._watch_estimator(now)
         if self.flushed:
             return
@@ -569,8 +572,13 @@ class ResultsNode(Node):
             if tid == self._path_target():
                 self.path_pub.publish(self._path_msg(tid))
         self.counts['states_published'] += n
-        self.journal.published(until)
+        self.journal.published(until, self._states_acked)
         return n
+
+    def _states_acked(self) -> bool:
+        """Whether every reader of the state topics has acknowledged what went out."""
+        pubs = [self.states_pub, *self.state_pubs.values()]
+        return all(p.wait_for_all_acked(_NO_WAIT) for p in pubs)
 
     @staticmethod
     def _path_time(ps: PoseStamped, tb: TimeBase) -> float:

@@ -502,6 +502,14 @@ def compare_passes(clean: PassResult, killed: PassResult) -> dict[str, Any]:
     ]
     t_common = (common - clean.epoch_ns) * 1e-9
     worst = int(np.argmax(dpos)) if dpos.size else -1
+    # a state sent again by a restarted results node (its first copy was not acknowledged
+    # when the old one died) must repeat the first copy's values
+    first = dict(zip(k_keys.tolist(), k_idx.tolist(), strict=True))
+    differing = sum(
+        1
+        for i, k in enumerate(killed.stamps.tolist())
+        if i != first[k] and not np.array_equal(killed.state[i], killed.state[first[k]])
+    )
     return {
         'states_clean': int(c_keys.size),
         'states_published': int(k_keys.size),
@@ -509,6 +517,7 @@ def compare_passes(clean: PassResult, killed: PassResult) -> dict[str, Any]:
         'lost_spans_s': _spans((lost - clean.epoch_ns) * 1e-9),
         'extra': int(extra.size),
         'published_twice': int(killed.stamps.size - k_keys.size),
+        'repeats_differing': differing,
         'max_position_diff_m': float(dpos.max()) if dpos.size else math.nan,
         'max_position_diff_at_s': round(float(t_common[worst]), 3) if worst >= 0 else math.nan,
         'max_velocity_diff_mps': (

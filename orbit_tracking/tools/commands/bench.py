@@ -158,9 +158,11 @@ def _restart_row(node: str, progress: Callable[[str], None] | None) -> FaultResu
         clean_states=int(r['states_clean']),
         max_dp_m=float(r['max_position_diff_m']),
         run='alone',
-        restart_loss=f'{r["lost"]} of {r["states_clean"]} states',
+        restart_loss=f'{r["lost"]} of {r["states_clean"]} states'
+        + (f', {r["published_twice"]} sent again' if r['published_twice'] else ''),
         missing_states=int(r['lost']),
-        extra_states=int(r['extra']) + int(r['published_twice']),
+        # a state sent again unacknowledged is allowed, with the same values
+        extra_states=int(r['extra']) + int(r['repeats_differing']),
         max_dp_sigma=float(r['max_diff_over_sigma']),
         sigma_tolerance=RESTART_SIGMA_TOLERANCE,
     )
