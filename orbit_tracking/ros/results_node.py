@@ -258,6 +258,8 @@ class ResultsNode(Node):
         self.create_service(Trigger, '~/flush', self._on_flush)
         self.journal = ResultsJournal(self)
         self.create_timer(0.5, self._tick)
+        if self.journal.enabled:  # marks what readers acknowledged (a restart resends the rest)
+            self.create_timer(0.05, lambda: self.journal.commit(self._states_acked))
         self.create_timer(1.0, self._publish_diagnostics)
         where = "the windows' world frame"
         if self.launch is not None:
@@ -492,7 +494,6 @@ class ResultsNode(Node):
 
     def _tick(self) -> None:
         now = time.monotonic()
-        self.journal.commit(self._states_acked)
         self._watch_estimator(now)
         if self.flushed:
             return
