@@ -14,7 +14,7 @@ from __future__ import annotations
 import os
 import zlib
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +28,7 @@ from orbit_tracking.core.models import dynamics
 from orbit_tracking.core.models.measurements import KIND_FIELDS, KIND_OPTIONAL_FIELDS
 from orbit_tracking.core.models.systematic import CLOCK
 from orbit_tracking.core.sim.scenario_schema import SCENARIO_SCHEMA as _SCENARIO
+from orbit_tracking.core.sim.telemetry import MODEL_PARAMETERS, parameters_of
 
 __all__ = [
     'Scenario',
@@ -40,6 +41,7 @@ __all__ = [
     'load_scenario',
     'orbit_state_from_elements',
     'scenario_dirs',
+    'scenario_from_dict',
     'station_rng',
     'truth_biases',
 ]
@@ -66,6 +68,11 @@ class StationConfig:
     dropouts: tuple[Mapping[str, Any], ...]
     loss_probability: float
     targets: tuple[int, ...]
+    gross_errors: Mapping[str, float] = field(
+        default_factory=lambda: {'count': 0, 'min_sigma': 20.0, 'max_sigma': 1000.0}
+    )
+    """``count`` values of the station (over all its rows and fields) off by a factor of
+    ``min_sigma``..``max_sigma`` (log-uniform, random sign) of their sigma."""
 
     @property
     def moving(self) -> bool:
@@ -91,6 +98,11 @@ class TelemetryConfig:
     position_drift_m: float
     velocity_drift_m_s: float
     outages: tuple[Mapping[str, Any], ...]
+    error_model: str = 'drift'
+    """One of :data:`~orbit_tracking.core.sim.telemetry.ERROR_MODELS`."""
+    error_parameters: Mapping[str, float] = field(default_factory=dict)
+    """Parameters of the error models (every key of
+    :data:`~orbit_tracking.core.sim.telemetry.MODEL_PARAMETERS`, defaults filled in)."""
 
 
 @dataclass(frozen=True)
@@ -288,7 +300,10 @@ def scenario_from_dict(data: Mapping[str, Any], source: str = '<dict>') -> Scena
             position_drift_m=tel['position_drift_m'],
             velocity_drift_m_s=tel['velocity_drift_m_s'],
             outages=tuple(tel['outages']),
+            error_model=tel['error_model'],
+            error_parameters=parameters_of(tel),
         )
+        _check_error_parameters(data.get('telemetry') or {}, tel['error_model'], source)
     ev = d['evaluation']
     return Scenario(
         name=d['name'],
@@ -309,6 +324,20 @@ def scenario_from_dict(data: Mapping[str, Any], source: str = '<dict>') -> Scena
         stations=stations,
         telemetry=telemetry,
     )
+
+
+def _check_error_parameters(raw: Mapping[str, Any], model: str, source: str) -> None:
+    """A parameter of another telemetry error model than the chosen one is an error (it
+    would silently do nothing)."""
+    own = set(MODEL_PARAMETERS[model])
+    for name in sorted({k for ks in MODEL_PARAMETERS.values() for k in ks} - own):
+        if name in raw and raw[name]:
+            users = [m for m, ks in MODEL_PARAMETERS.items() if name in ks]
+            raise ConfigError(
+                source,
+                f'telemetry.{name}',
+                f'a parameter of error model(s) {users}, not of error_model {model!r}',
+            )
 
 
 def _unique(ids: Sequence[Any], key: str, source: str) -> None:
@@ -386,6 +415,13 @@ def _station(
             raise ConfigError(
                 source, f'{key}.dropouts[{j}].fields', f'expected fields of {list(fields)}'
             )
+    gross = s['gross_errors']
+    if not gross['min_sigma'] <= gross['max_sigma']:
+        raise ConfigError(
+            source,
+            f'{key}.gross_errors',
+            f'expected min_sigma <= max_sigma, got {gross["min_sigma"]} > {gross["max_sigma"]}',
+        )
     mask = s['elevation_mask_deg']
     if mask is None and kind != 'satellite':
         mask = 0.0
@@ -405,6 +441,7 @@ def _station(
         dropouts=tuple(s['dropouts']),
         loss_probability=s['loss_probability'],
         targets=_target_refs(s['targets'], target_ids, f'{key}.targets', source),
+        gross_errors=dict(gross),
     )
 
 

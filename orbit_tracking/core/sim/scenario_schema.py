@@ -28,6 +28,7 @@ from orbit_tracking.core.schema import (
     Tagged,
     Vec,
 )
+from orbit_tracking.core.sim.telemetry import ERROR_MODELS
 
 __all__ = ['SCENARIO_SCHEMA']
 
@@ -167,12 +168,23 @@ _STATION = Obj(
         'earth_occlusion': (Bool(), True),
         'dropouts': (Intervals({'fields': (Nullable(ListOf(Choice(FIELDS), 1)), None)}), []),
         'loss_probability': (Num(ge=0.0, lt=1.0), 0.0),
+        'gross_errors': (
+            Obj(
+                {
+                    'count': (Num(integer=True, ge=0, le=100000), 0),
+                    'min_sigma': (Num(gt=0.0, le=1.0e6), 20.0),
+                    'max_sigma': (Num(gt=0.0, le=1.0e6), 1000.0),
+                }
+            ),
+            {'count': 0, 'min_sigma': 20.0, 'max_sigma': 1000.0},
+        ),
         'targets': (Nullable(ListOf(Num(integer=True, ge=0), min_len=1)), None),
     }
 )
 _TELEMETRY = Obj(
     {
         'kind': (Choice(('drift', 'gps')), 'drift'),
+        'error_model': (Choice(ERROR_MODELS), 'drift'),
         'rate_hz': (Num(gt=0.0, le=1000.0), REQUIRED),
         'first_epoch': (Nullable(Num()), None),
         'targets': (Nullable(ListOf(Num(integer=True, ge=0), min_len=1)), None),
@@ -180,6 +192,21 @@ _TELEMETRY = Obj(
         'velocity_sigma_m_s': (Num(gt=0.0), REQUIRED),
         'position_drift_m': (Num(ge=0.0), 0.0),
         'velocity_drift_m_s': (Num(ge=0.0), 0.0),
+        # parameters of the other error models (core/sim/telemetry.py, docs/SCENARIOS.md)
+        'position_walk_m_sqrt_s': (Num(ge=0.0, le=100.0), 0.0),
+        'position_markov_m': (Num(ge=0.0, le=1.0e4), 0.0),
+        'position_markov_tau_s': (Num(gt=0.0, le=1.0e5), 100.0),
+        'velocity_markov_m_s': (Num(ge=0.0, le=100.0), 0.0),
+        'velocity_markov_tau_s': (Num(gt=0.0, le=1.0e5), 100.0),
+        'position_bias_m': (Num(ge=0.0, le=1.0e4), 0.0),
+        'position_drift_rate_m_s': (Num(ge=0.0, le=100.0), 0.0),
+        'velocity_bias_m_s': (Num(ge=0.0, le=100.0), 0.0),
+        'position_delay_s': (Num(ge=-1.0, le=1.0), 0.0),
+        'velocity_delay_s': (Num(ge=-1.0, le=1.0), 0.0),
+        'jump_rate_hz': (Num(ge=0.0, le=1.0), 0.0),
+        'jump_sigma_m': (Num(ge=0.0, le=1.0e4), 0.0),
+        'position_quantum_m': (Num(ge=0.0, le=1.0e3), 0.0),
+        'velocity_quantum_m_s': (Num(ge=0.0, le=100.0), 0.0),
         'outages': (Intervals(), []),
     }
 )

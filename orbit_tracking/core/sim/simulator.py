@@ -11,6 +11,7 @@ from __future__ import annotations
 import copy
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 from numpy.typing import NDArray
@@ -28,12 +29,17 @@ from orbit_tracking.core.sim.scenario import (
     build_targets,
     station_rng,
 )
+from orbit_tracking.core.sim.telemetry import simulate_model
 
 __all__ = [
     'SimulationResult',
     'World',
     'epoch_grid',
     'simulate',
+    'simulate_station',
+    'simulate_station_with_gross_errors',
+    'simulate_telemetry',
+    'simulate_truth',
 ]
 
 FloatArray = NDArray[np.float64]
@@ -48,6 +54,9 @@ class SimulationResult:
     station_states: Mapping[str, StationStates]
     truth: Mapping[int, TargetStates]
     telemetry: Mapping[int, TargetStates] = field(default_factory=dict)
+    gross_errors: Mapping[str, NDArray[np.bool_]] = field(default_factory=dict)
+    """Per station, which values (n, k) of its table carry a simulated gross error
+    (``gross_errors`` of the station's config)."""
 
 
 def epoch_grid(first: float, rate_hz: float, t_start: float, t_end: float) -> FloatArray:
@@ -173,6 +182,16 @@ def _in_windows(t: FloatArray, windows: Sequence[Mapping[str, float]]) -> NDArra
 
 def simulate_station(world: World, st: StationConfig) -> tuple[MeasurementTable, StationStates]:
     """Measurements and station states of one station over the scenario span."""
+    table, states, _ = simulate_station_with_gross_errors(world, st)
+    return table, states
+
+
+def simulate_station_with_gross_errors(
+    world: World, st: StationConfig
+) -> tuple[MeasurementTable, StationStates, NDArray[np.bool_]]:
+    """:func:`simulate_station`, and which values (n, k) of the table carry a gross
+    error (``st.gross_errors``; drawn after all other noise of the station, so a station
+    without them is simulated exactly as before)."""
     sc = world.scenario
     rng = station_rng(sc, st.id)
     grid = epoch_grid(st.first_epoch, st.rate_hz, sc.t_start, sc.t_end)
@@ -217,20 +236,59 @@ def simulate_station(world: World, st: StationConfig) -> tuple[MeasurementTable,
             inside = _in_windows(time, [w])
             for f in w['fields']:
                 meas[inside, st.fields.index(f)] = np.nan
+    gross = _gross_errors(st, meas, sig, rng)
     table = MeasurementTable(st.id, st.kind, st.fields, time, tids, meas, sig)
     # a point whose every value is NaN carries nothing: drop it
-    table = table.select(~np.all(np.isnan(table.values), axis=1))
-    return table, states
+    keep = ~np.all(np.isnan(table.values), axis=1)
+    return table.select(keep), states, gross[keep]
+
+
+def _gross_errors(
+    st: StationConfig, meas: FloatArray, sig: FloatArray, rng: np.random.Generator
+) -> NDArray[np.bool_]:
+    """Add the station's gross errors to ``meas`` in place; returns where they are."""
+    mask = np.zeros(meas.shape, dtype=bool)
+    count = int(st.gross_errors.get('count', 0))
+    cand = np.flatnonzero(np.isfinite(meas).ravel())
+    if count <= 0 or cand.size == 0:
+        return mask
+    pick = rng.choice(cand, size=min(count, cand.size), replace=False)
+    lo, hi = float(st.gross_errors['min_sigma']), float(st.gross_errors['max_sigma'])
+    factor = np.exp(rng.uniform(np.log(lo), np.log(hi), pick.size))
+    sign = np.where(rng.random(pick.size) < 0.5, -1.0, 1.0)
+    flat, sflat = meas.reshape(-1), sig.reshape(-1)
+    flat[pick] += sign * factor * sflat[pick]
+    mask.reshape(-1)[pick] = True
+    for j, f in enumerate(st.fields):
+        if f == 'azimuth':
+            meas[:, j] = wrap_azimuth(meas[:, j])
+    return mask
 
 
 def simulate_telemetry(world: World, tel: TelemetryConfig) -> dict[int, TargetStates]:
-    """On-board telemetry (``drift``: slowly drifting errors) or airborne GPS (``gps``)."""
+    """On-board telemetry or airborne GPS, with the errors of ``tel.error_model``
+    (default ``drift``: slowly drifting errors, below; the others in
+    :mod:`~orbit_tracking.core.sim.telemetry`)."""
     sc = world.scenario
     out: dict[int, TargetStates] = {}
     grid = epoch_grid(tel.first_epoch, tel.rate_hz, sc.t_start, sc.t_end)
     grid = grid[~_in_windows(grid, tel.outages)]
     for tid in tel.targets:
         rng = station_rng(sc, f'telemetry_{tid}')
+        if tel.error_model != 'drift':
+            got = simulate_model(
+                tel, grid, sc.t_start, sc.t_end, partial(world.target_state, tid), rng
+            )
+            ones = np.ones((grid.size, 3))
+            out[tid] = TargetStates(
+                tid,
+                grid,
+                got.position,
+                got.velocity,
+                got.position_sigma * ones,
+                got.velocity_sigma * ones,
+            )
+            continue
         x = world.target_state(tid, grid)
         tau = grid - sc.t_start
         span = max(sc.t_end - sc.t_start, 1.0)
@@ -289,7 +347,8 @@ def simulate(scenario: Scenario, world: World | None = None) -> SimulationResult
         world.scenario = scenario
     meas: dict[str, MeasurementTable] = {}
     states: dict[str, StationStates] = {}
+    gross: dict[str, NDArray[np.bool_]] = {}
     for st in scenario.stations:
-        meas[st.id], states[st.id] = simulate_station(world, st)
+        meas[st.id], states[st.id], gross[st.id] = simulate_station_with_gross_errors(world, st)
     tel = simulate_telemetry(world, scenario.telemetry) if scenario.telemetry else {}
-    return SimulationResult(scenario, meas, states, simulate_truth(world), tel)
+    return SimulationResult(scenario, meas, states, simulate_truth(world), tel, gross)
