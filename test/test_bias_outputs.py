@@ -124,7 +124,7 @@ def test_offline_estimate_with_auto_biases_writes_biases_csv_and_recovers_them(
     args = ['estimate', str(bag), '--out', str(out), '--window-length', '20', '--overlap', '6']
     assert cli_main([*args, '--biases', 'auto', '--quiet']) == 0
     printed = capsys.readouterr().out
-    assert '2 windows: 2 converged' in printed
+    assert '2 windows: 2 succeeded' in printed
     assert 'miss-distance gate off: biases declared' in printed
     assert 'biases cw02: range ' in printed and '(truth 3, z ' in printed
 

@@ -39,7 +39,7 @@ def test_demo_runs_the_nodes_over_dds_and_reports_their_trajectory(tmp_path, cap
     assert (out / 'live_bag' / 'metadata.yaml').is_file()
     summary = yaml.safe_load((out / 'summary.yaml').read_text())
     assert summary['recorded']['trajectory/states'] == summary['live']['states_published']
-    assert summary['totals']['solved'] >= 2 and summary['totals']['failed'] == 0
+    assert summary['totals']['succeeded'] >= 2 and summary['totals']['failed'] == 0
 
     # the live trajectory covers the measurements and holds no hole
     sc = load_scenario('seed003_q2')

@@ -137,6 +137,7 @@ def test_noise_free_measurements_recover_a_spline_truth_through_estimate():
         knots=KnotConfig(base_spacing=2.0),
         use_telemetry=False,
         detect_segments=False,
+        convergence_decrement=1e-12,  # noise-free: to rounding, not to 0.001 sigma
     )
     est = estimate(obs, 0.0, 20.0, cfg)
     assert est.success, est.message
@@ -159,7 +160,7 @@ def test_noise_free_measurements_recover_a_spline_truth_with_a_staging_knot():
     rng = np.random.default_rng(2)
     traj, coef = _truth_spline([3.0, 6.0, 9.0, 9.0, 9.0, 12.0, 15.0, 17.5])
     obs = _observations(traj, coef, rng)
-    cfg = EstimatorConfig(use_telemetry=False)
+    cfg = EstimatorConfig(use_telemetry=False, convergence_decrement=1e-12)  # noise-free
     prob, est_traj, beta0 = _problem_on(obs, traj.axes, cfg)
     t = np.linspace(0.0, 20.0, 201)
     truth = traj.states(coef, t)
@@ -181,7 +182,9 @@ def small_problem():
     rng = np.random.default_rng(7)
     traj, coef = _truth_spline([5.0], t1=10.0)
     obs = _observations(traj, coef, rng, rate_hz=5.0, noise=True)
-    cfg = EstimatorConfig(use_telemetry=False, tolerance=1e-14, max_iterations=50)
+    cfg = EstimatorConfig(
+        use_telemetry=False, tolerance=1e-14, convergence_decrement=1e-12, max_iterations=50
+    )
     prob, est_traj, beta0 = _problem_on(obs, traj.axes, cfg)
     return prob, est_traj, beta0, cfg
 

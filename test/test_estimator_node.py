@@ -121,7 +121,7 @@ def test_offline_estimate_writes_the_contract_trajectory_within_its_sigmas(
     args = ['estimate', str(bag), '--out', str(out), '--window-length', '20', '--overlap', '6']
     assert cli_main([*args, '--quiet']) == 0
     printed = capsys.readouterr().out
-    assert '2 windows: 2 converged' in printed and 'inside gaps' in printed
+    assert '2 windows: 2 succeeded' in printed and 'inside gaps' in printed
     with open(out / 'trajectory.csv') as fh:
         assert fh.readline().strip() == ','.join(TRAJECTORY_CSV_COLUMNS)
     traj = read_trajectory_csv(out / 'trajectory.csv')

@@ -69,7 +69,7 @@ def run(tmp_path_factory):
         'rough_trajectory': 'telemetry',
         'config': {'window_length': 20.0, 'window_overlap': 6.0, 'output_step': 0.1},
         'counts': {},
-        'totals': {'windows': 2, 'converged': 2, 'failed': 0, 'output_states': int(t.size)},
+        'totals': {'windows': 2, 'succeeded': 2, 'failed': 0, 'output_states': int(t.size)},
         'windows': [
             {
                 'start': a,

@@ -516,6 +516,8 @@ class EstimatorNode(StationInputs):
         try:
             cfg = self._window_config(obs)
             est = estimate(obs, t0, t1, cfg, ids, self.previous or None)
+            if not est.success:  # inconsistent or not converged: withheld, never final
+                return self._failed(span, wall, f'not published: {est.message}', withheld)
             self._publish_window(est, tb)
             self._publish_biases(est, tb)
             self._publish_residuals(est, obs, tb)
@@ -540,11 +542,7 @@ class EstimatorNode(StationInputs):
             + f', {est.n_parameters} parameters; solved in {dt:.2f} s '
             f'(knots {est.knot_time:.2f} s, Gauss-Newton {est.solve_time:.2f} s)'
         )
-        # one severity per call site: rclpy refuses a call site whose severity changes
-        if est.success:
-            self.get_logger().info(text)
-        else:
-            self.get_logger().warning(text)
+        self.get_logger().info(text)
         return True
 
     def _failed(self, span: Span, wall: float, reason: str, withheld: Counter[str]) -> bool:

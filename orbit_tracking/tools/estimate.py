@@ -98,8 +98,8 @@ class EstimationReport:
         rej = sum(sum(e.rejected.values()) for e in self.estimates)
         chi2 = [e.chi2_dof for e in self.estimates]
         out = [
-            f'{n_all} windows: {n_ok} converged, {len(self.estimates) - n_ok} solved with a '
-            f'warning, {len(self.failures)} failed; {its} Gauss-Newton iterations; '
+            f'{n_all} windows: {n_ok} succeeded, {n_all - n_ok} failed (not published); '
+            f'{its} Gauss-Newton iterations; '
             f'chi2/dof {min(chi2, default=math.nan):.3f}-{max(chi2, default=math.nan):.3f}; '
             f'{used} measured values used, {rej} rejected; rough trajectory: {self.rough}',
             f'{self.times.size} output states of target {self.target_id}'
@@ -111,6 +111,9 @@ class EstimationReport:
             out.append('input: ' + ', '.join(f'{k} {v}' for k, v in sorted(self.counts.items())))
         for span, why in self.failures:
             out.append(f'window [{span[0]:.3f}, {span[1]:.3f}] s failed: {why}')
+        for e in self.estimates:
+            if not e.success:
+                out.append(f'window [{e.t0:.3f}, {e.t1:.3f}] s failed: {e.message}')
         out += self.context.state_lines()
         out += evaluation_lines(self.evaluation)
         out += self.bias_notes
@@ -389,8 +392,8 @@ def estimate_bag(
         'stations_without_state': dict(ctx.stations_without_state),
         'totals': {
             'windows': len(estimates) + len(failures),
-            'converged': int(sum(e.success for e in estimates)),
-            'failed': len(failures),
+            'succeeded': int(sum(e.success for e in estimates)),
+            'failed': len(failures) + int(sum(not e.success for e in estimates)),
             'iterations': int(sum(e.iterations for e in estimates)),
             'output_states': int(t_main.size),
         },

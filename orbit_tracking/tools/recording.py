@@ -63,12 +63,11 @@ class RecordingReport:
     def lines(self) -> list[str]:
         """Human-readable summary."""
         solved = [w for w in self.windows if w['success']]
-        converged = sum(bool(w.get('converged')) for w in solved)
         chi2 = [float(w['chi2_dof']) for w in solved if 'chi2_dof' in w]
         out = [
-            f'{len(self.windows)} windows of the estimator node: {len(solved)} solved '
-            f'({converged} converged as its diagnostics tell), {len(self.windows) - len(solved)} '
-            'failed' + (f'; chi2/dof {min(chi2):.3f}-{max(chi2):.3f}' if chi2 else ''),
+            f'{len(self.windows)} windows of the estimator node: {len(solved)} succeeded, '
+            f'{len(self.windows) - len(solved)} failed (not published)'
+            + (f'; chi2/dof {min(chi2):.3f}-{max(chi2):.3f}' if chi2 else ''),
             f'{self.times.size} final states of target {self.target_id} from the results node'
             + (f' from {self.times[0]:.3f} s to {self.times[-1]:.3f} s' if self.times.size else '')
             + (f' ({self.duplicates} published twice, kept once)' if self.duplicates else ''),
@@ -107,7 +106,7 @@ def _window_row(kv: Mapping[str, str]) -> dict[str, Any]:
             return None
 
     message = kv.get('last_window_status', '')
-    row: dict[str, Any] = {'message': message, 'converged': message.startswith('converged')}
+    row: dict[str, Any] = {'message': message}
     for key, name, kind in (
         ('last_iterations', 'iterations', int),
         ('last_halvings', 'halvings', int),
@@ -285,8 +284,7 @@ def write_recorded_outputs(
         'recorded': recorded,
         'totals': {
             'windows': len(windows),
-            'solved': len(solved),
-            'converged': int(sum(bool(w.get('converged')) for w in solved)),
+            'succeeded': len(solved),
             'failed': len(windows) - len(solved),
             'output_states': int(t_main.size),
             'states_published_twice': duplicates,

@@ -45,9 +45,15 @@ class EstimatorConfig:
     baseline_spacing : float
         Knot spacing [s] of the ``dynamics`` baseline.
     polynomial_degree : int
-    max_iterations, tolerance, max_halvings :
-        Gauss-Newton stops when the relative cost change falls below ``tolerance`` or
-        after ``max_iterations``; a step is halved at most ``max_halvings`` times.
+    max_iterations : int
+        Gauss-Newton (Levenberg-Marquardt) iterations at most.
+    convergence_decrement : float
+        A solve has converged when the Gauss-Newton step from its solution would lower the
+        cost (chi-square) by at most this: the step would move it by less than the square
+        root of this in units of its own standard deviations (0.01 by default).
+    tolerance, max_halvings :
+        The robust warm-up stops when its relative cost change falls below ``tolerance``;
+        its step is halved at most ``max_halvings`` times.
     gate_sigma : float
         Whitened-residual gate (0 disables it); ``gate_rounds`` re-solves at most.
         Station values and fixes beyond it are rejected; telemetry epochs only beyond
@@ -75,6 +81,17 @@ class EstimatorConfig:
         Knot spacing [s] of the telemetry error spline (cubic).
     estimate_telemetry_noise : bool
         Re-estimate the telemetry white-noise levels from the residuals.
+    max_chi2_dof : float
+        Largest chi-square per degree of freedom of a window that is a success (with few
+        degrees of freedom ``1 + 5 sqrt(2 / dof)`` if larger; see
+        :mod:`~orbit_tracking.core.estimation.verdict`).
+    retry : bool
+        Solve a window that is not a success again with safer settings
+        (:func:`~orbit_tracking.core.estimation.estimator.safer_settings`).
+    estimate_station_noise : bool
+        Use a station field's sigmas scaled up to the RMS of its residuals when these show
+        white noise significantly larger than declared (never below the declared sigma;
+        see :func:`~orbit_tracking.core.estimation.gauss_newton.reestimate_station_noise`).
     fix_weight : float
         Fixes as measurements with covariance / ``fix_weight``; 0 = not used.
     refine_rounds : int
@@ -110,6 +127,7 @@ class EstimatorConfig:
     baseline_spacing: float = 3.0
     polynomial_degree: int = 6
     max_iterations: int = 20
+    convergence_decrement: float = 1e-4
     tolerance: float = 1e-9
     max_halvings: int = 12
     gate_sigma: float = 5.0
@@ -119,6 +137,9 @@ class EstimatorConfig:
     use_telemetry: bool = True
     telemetry_error_spacing: float = 15.0
     estimate_telemetry_noise: bool = True
+    estimate_station_noise: bool = True
+    max_chi2_dof: float = 1.5
+    retry: bool = True
     fix_weight: float = 0.0
     refine_rounds: int = 4
     refine_alpha: float = 0.01
@@ -138,6 +159,12 @@ class EstimatorConfig:
             )
         if self.max_iterations < 1 or self.max_halvings < 0:
             raise ValueError('max_iterations must be >= 1 and max_halvings >= 0')
+        if not self.max_chi2_dof >= 1.0:
+            raise ValueError(f'max_chi2_dof must be >= 1; got {self.max_chi2_dof}')
+        if not self.convergence_decrement > 0.0:
+            raise ValueError(
+                f'convergence_decrement must be > 0; got {self.convergence_decrement}'
+            )
         if self.gate_sigma < 0.0 or self.fix_weight < 0.0:
             raise ValueError('gate_sigma and fix_weight must be >= 0')
         if self.robust_loss not in ROBUST_LOSSES:

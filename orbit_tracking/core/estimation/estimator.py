@@ -36,6 +36,7 @@ without gross errors the warm-up takes the plain solve's own steps.
 
 from __future__ import annotations
 
+import math
 import time as _time
 from collections import Counter
 from collections.abc import Mapping, Sequence
@@ -45,6 +46,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from orbit_tracking.core.data.observations import Observations
+from orbit_tracking.core.errors import OrbitTrackingError
 from orbit_tracking.core.estimation.config import EstimationError, EstimatorConfig, Segment
 from orbit_tracking.core.estimation.coverage import find_incomplete_segments, merge_segments
 from orbit_tracking.core.estimation.gauss_newton import covariance, solve
@@ -58,9 +60,10 @@ from orbit_tracking.core.estimation.knots import KnotSelection, RoughTrajectory,
 from orbit_tracking.core.estimation.observability import bias_estimates, freeze_unobservable
 from orbit_tracking.core.estimation.problem import Problem
 from orbit_tracking.core.estimation.results import Estimate, TargetSolution, state_covariance
+from orbit_tracking.core.estimation.verdict import judge
 from orbit_tracking.core.models.measurements import residual
 
-__all__ = ['REFINE_MAX_CHI2', 'estimate']
+__all__ = ['REFINE_MAX_CHI2', 'estimate', 'safer_settings']
 
 FloatArray = NDArray[np.float64]
 
@@ -82,7 +85,7 @@ def _rough_from_previous(prev: TargetSolution, t0: float, t1: float) -> RoughTra
     return RoughTrajectory('previous window', t, x[:, :3], x[:, 3:], 0.1, 0.01)
 
 
-def estimate(
+def _estimate_once(
     obs: Observations,
     t0: float,
     t1: float,
@@ -271,7 +274,7 @@ def estimate(
             rejected[(b.station, 'not_measured')] += nan
         pred, _, _ = prob.predict_block(bi, out.beta)
         with np.errstate(over='ignore', invalid='ignore'):  # a gated absurd value
-            rr = residual(b.fields, b.values, pred) / b.sigmas
+            rr = residual(b.fields, b.values, pred) / b.declared
         rr[g] = np.nan
         residuals[b.station if b.target == ids[0] else f'{b.station}/{b.target}'] = (
             b.time,
@@ -289,6 +292,12 @@ def estimate(
         if g.any():
             rejected[(f'fixes_{fb.target}', 'residual_gate')] += int((fb.valid & g).sum())
     dof = max(r.size - prob.n, 1)
+    chi2_dof = out.cost / dof
+    finite = bool(np.all(np.isfinite(out.beta)) and np.all(np.isfinite(cov)))
+    verdict = judge(
+        out.converged, chi2_dof, dof, cfg.max_chi2_dof, singular, prob.gate_refused, finite
+    )
+    cov = cov * verdict.covariance_scale
     targets = {}
     for tid, s in selections.items():
         o = prob.offsets[tid]
@@ -306,6 +315,12 @@ def estimate(
             else (tel.axis, out.beta[tel.offset : tel.offset + 3 * tel.axis.n_coef].copy()),
             None if tel is None else (tel.noise[0], tel.noise[1]),
         )
+    factors = {
+        (b.station, f): float(b.factor[j])
+        for b in prob.stations
+        for j, f in enumerate(b.fields)
+        if b.factor[j] != 1.0
+    }
     msg = (
         out.message
         + refine_note
@@ -321,8 +336,16 @@ def estimate(
             f'; the residual gate would reject {prob.gate_refused:.0%} of the rows, so the '
             'model does not fit the data (unmodelled systematic errors?): nothing gated'
         )
+    if verdict.covariance_scale != 1.0:
+        msg += f'; covariance scaled by the misfit ({verdict.covariance_scale:.3g})'
+    if factors:
+        msg += '; sigmas used larger than declared: ' + ', '.join(
+            f'{st} {f} x{k:.2f}' for (st, f), k in sorted(factors.items())
+        )
+    if not verdict.success:
+        msg = 'FAILED (' + '; '.join(verdict.reasons) + '): ' + msg
     return Estimate(
-        success=out.converged and not singular and not prob.gate_refused,
+        success=verdict.success,
         message=msg,
         t0=t0,
         t1=t1,
@@ -330,7 +353,7 @@ def estimate(
         iterations=iterations,
         halvings=halvings,
         cost=out.cost,
-        chi2_dof=out.cost / dof,
+        chi2_dof=chi2_dof,
         condition=cond,
         n_parameters=prob.n,
         used=used,
@@ -340,7 +363,96 @@ def estimate(
         solve_time=solve_time,
         covariance=cov,
         biases=bias_estimates(prob, out.beta, cov),
+        covariance_scale=verdict.covariance_scale,
+        noise_factors=factors,
     )
+
+
+def estimate(
+    obs: Observations,
+    t0: float,
+    t1: float,
+    cfg: EstimatorConfig | None = None,
+    target_ids: Sequence[int] | None = None,
+    previous: Mapping[int, TargetSolution] | None = None,
+    frame: tuple[FloatArray, FloatArray] | None = None,
+) -> Estimate:
+    """Estimate the trajectories of ``target_ids`` over [t0, t1] from ``obs``.
+
+    A window that is not a success (:mod:`~orbit_tracking.core.estimation.verdict`) is
+    solved again with safer settings (:func:`safer_settings`), in turn, until one is a
+    success; when none is, the attempt with the smallest chi-square per degree of freedom
+    is returned as failed, its message naming every attempt.
+
+    Parameters
+    ----------
+    obs : Observations
+        Measurements (rows outside [t0, t1] are ignored).
+    t0, t1 : float
+        Window span [s].
+    cfg : EstimatorConfig
+    target_ids : sequence of int, optional
+        Default: every target with measurements.
+    previous : mapping of target id to TargetSolution, optional
+        The previous window's solution: the initial guess where it overlaps, and the
+        rough trajectory when no telemetry or fixes exist.
+    frame : (origin, rotation), optional
+        Spline frame (e.g. the launch frame); default a launch-like frame at the first
+        rough point.
+
+    Raises
+    ------
+    EstimationError
+        No measurements, or no rough trajectory to start from: for a target asked for in
+        ``target_ids``, or for every target when they are not given (then a target without
+        one is left out and named in the message, so that stray data of an unknown target
+        cannot fail the others' window).
+    """
+    cfg = cfg or EstimatorConfig()
+    first = _estimate_once(obs, t0, t1, cfg, target_ids, previous, frame)
+    if first.success or not cfg.retry:
+        return first
+    tried = [('the settings', first)]
+    for label, cfg2, prev2 in safer_settings(cfg, previous):
+        try:
+            e = _estimate_once(obs, t0, t1, cfg2, target_ids, prev2, frame)
+        except OrbitTrackingError as exc:
+            tried.append((label, replace(first, message=f'{label}: {exc}', chi2_dof=math.inf)))
+            continue
+        tried.append((label, e))
+        if e.success:
+            return replace(
+                e,
+                message=f'{e.message}; solved with {label} after: {first.message}',
+                iterations=sum(t.iterations for _, t in tried),
+                attempts=len(tried),
+            )
+    best = min(tried, key=lambda t: t[1].chi2_dof if math.isfinite(t[1].chi2_dof) else math.inf)
+    text = ' | '.join(f'{label}: {e.message}' for label, e in tried)
+    return replace(
+        best[1],
+        success=False,
+        message=f'FAILED with every setting tried ({text})',
+        iterations=sum(t.iterations for _, t in tried),
+        attempts=len(tried),
+    )
+
+
+def safer_settings(
+    cfg: EstimatorConfig, previous: Mapping[int, TargetSolution] | None
+) -> list[tuple[str, EstimatorConfig, Mapping[int, TargetSolution] | None]]:
+    """The retries of a window that was not a success, safest last: a start from the rough
+    trajectory alone with fewer knots (events and a knot every ``baseline_spacing`` s, no
+    knot test), then the same without telemetry fused (telemetry whose errors its model
+    does not describe pulls the fit away from the stations)."""
+    del previous  # the retries start from the rough trajectory, not the previous window
+    fewer = replace(cfg, knot_method='dynamics', refine_rounds=0)
+    out: list[tuple[str, EstimatorConfig, Mapping[int, TargetSolution] | None]] = [
+        (f'fewer knots (every {cfg.baseline_spacing:g} s and events)', fewer, None)
+    ]
+    if cfg.use_telemetry:
+        out.append(('fewer knots, telemetry not fused', replace(fewer, use_telemetry=False), None))
+    return out
 
 
 def _seed_from_previous(

@@ -34,10 +34,16 @@ from numpy.typing import NDArray
 
 from orbit_tracking.core.estimation.config import EstimationError, EstimatorConfig
 from orbit_tracking.core.estimation.problem import ROBUST_KINDS, GateKey, Problem
+from orbit_tracking.core.models.measurements import residual
 
 __all__ = [
     'ABSURD_SIGMA',
     'DAMPING',
+    'LM_LAMBDAS',
+    'NOISE_MIN_VALUES',
+    'NOISE_WHITE_LAG1',
+    'decrement',
+    'reestimate_station_noise',
     'GATE_MAX_FRACTION',
     'GROSS_FACTOR',
     'GnOutcome',
@@ -68,10 +74,15 @@ determine to better than 1e-10 of the best-determined one stay where they are in
 running away (Levenberg-Marquardt with a fixed, tiny lambda)."""
 
 
-def _normal_solve(n: FloatArray, g: FloatArray) -> tuple[FloatArray, float, bool]:
+def _normal_solve(
+    n: FloatArray, g: FloatArray, lam: float = 0.0
+) -> tuple[FloatArray, float, bool]:
+    """Step ``(N + lam D) step = g`` on the Jacobi-scaled normal matrix (``D`` its
+    diagonal; ``lam = 0`` is the Gauss-Newton step with :data:`DAMPING`), the condition
+    number of the scaled matrix, and whether Cholesky succeeded."""
     d = np.sqrt(np.maximum(np.diag(n), 1e-300))
     ns = n / d[:, None] / d[None, :]
-    ns[np.diag_indices_from(ns)] += DAMPING
+    ns[np.diag_indices_from(ns)] += DAMPING + lam
     try:
         cf = sla.cho_factor(ns, check_finite=False)
         step = sla.cho_solve(cf, g / d, check_finite=False) / d
@@ -79,37 +90,102 @@ def _normal_solve(n: FloatArray, g: FloatArray) -> tuple[FloatArray, float, bool
     except np.linalg.LinAlgError:
         step = np.linalg.lstsq(ns, g / d, rcond=1e-12)[0] / d
         ok = False
+    if lam > 0.0:
+        return step, math.nan, ok
     ev = np.linalg.eigvalsh(ns)
     cond = float(ev[-1] / ev[0]) if ev[0] > 0 else math.inf
     return step, cond, ok
 
 
+LM_LAMBDAS = tuple(10.0**k for k in range(-6, 9))
+"""Levenberg-Marquardt damping tried, in turn, when the Gauss-Newton step raises the cost
+(relative to the Jacobi-scaled normal matrix, whose diagonal is 1): from a nudge to a
+short steepest-descent step."""
+
+
+def _free(prob: Problem, beta: FloatArray, step: FloatArray) -> NDArray[np.bool_]:
+    """Parameters free to move: all but the biases held at a bound by this step."""
+    free = np.ones(beta.size, dtype=bool)
+    if prob.biases:
+        sl = slice(prob.bias_offset, prob.bias_offset + len(prob.biases))
+        b, s = beta[sl], step[sl]
+        free[sl] = ~(((b <= prob.bias_lower) & (s < 0)) | ((b >= prob.bias_upper) & (s > 0)))
+    return free
+
+
+def decrement(prob: Problem, beta: FloatArray, n: FloatArray, g: FloatArray) -> float:
+    """Predicted decrease of the cost by the full Gauss-Newton step at ``beta``:
+    ``g^T N^-1 g`` over the parameters free to move (a bias held at its bound by the step
+    is left out). The step moves the solution by about ``sqrt`` of it in units of its own
+    standard deviation, so it tells a solution that cannot improve from one that merely
+    found no step that lowers the cost."""
+    step, _, _ = _normal_solve(n, g)
+    free = _free(prob, beta, step)
+    if not free.all():
+        step = np.zeros_like(step)
+        step[free], _, _ = _normal_solve(n[np.ix_(free, free)], g[free])
+    return max(float(g @ step), 0.0)
+
+
 def gauss_newton(prob: Problem, beta: FloatArray, cfg: EstimatorConfig) -> GnOutcome:
+    """Gauss-Newton (seed 000, eq. 7) with Levenberg-Marquardt steps when a plain step
+    raises the cost.
+
+    Each iteration takes the Gauss-Newton step at the current point; if the cost rises it
+    tries the damped steps of :data:`LM_LAMBDAS` in turn (a trust region that shrinks
+    toward a short gradient step, better than halving a step that points the wrong way
+    in an ill-conditioned valley). It has *converged* when the Gauss-Newton step from the
+    current point would lower the cost by at most ``cfg.convergence_decrement``
+    (:func:`decrement`: the solution would move by less than its square root of a
+    standard deviation), checked at every point, never inferred from a small step. When
+    no damped step lowers the cost either it has converged only if that test holds;
+    otherwise the outcome says it stalled.
+    """
     r, jac, _ = prob.evaluate(beta, True)
     cost = float(r @ r)
-    halvings = 0
+    tried = 0
     for it in range(1, cfg.max_iterations + 1):
         assert jac is not None
         n = (jac.T @ jac).toarray()
         g = jac.T @ r
-        step, _, _ = _normal_solve(n, g)
-        omega = 1.0
-        for _ in range(cfg.max_halvings + 1):
-            trial = prob.project(beta + omega * step)
+        dec = decrement(prob, beta, n, g)
+        if dec <= cfg.convergence_decrement:
+            return GnOutcome(beta, cost, it - 1, tried, True, 'converged')
+        accepted = False
+        for lam in (0.0, *LM_LAMBDAS):
+            tried += lam > 0.0
+            step, _, _ = _normal_solve(n, g, lam)
+            trial = prob.project(beta + step)
             c_new = prob.cost(trial)
             if c_new <= cost:
+                accepted = True
                 break
-            omega *= 0.5
-            halvings += 1
-        else:
-            return GnOutcome(beta, cost, it, halvings, True, 'no step reduces the cost')
-        change = cost - c_new
+        if not accepted:
+            return GnOutcome(
+                beta,
+                cost,
+                it,
+                tried,
+                False,
+                f'stalled: no step lowers the cost, the Gauss-Newton step would lower it by '
+                f'{dec:.3g}',
+            )
         beta = trial
         r, jac, _ = prob.evaluate(beta, True)
         cost = float(r @ r)
-        if change <= cfg.tolerance * max(cost, 1.0):
-            return GnOutcome(beta, cost, it, halvings, True, 'converged')
-    return GnOutcome(beta, cost, cfg.max_iterations, halvings, False, 'iteration limit')
+    assert jac is not None
+    n = (jac.T @ jac).toarray()
+    dec = decrement(prob, beta, n, jac.T @ r)
+    if dec <= cfg.convergence_decrement:
+        return GnOutcome(beta, cost, cfg.max_iterations, tried, True, 'converged')
+    return GnOutcome(
+        beta,
+        cost,
+        cfg.max_iterations,
+        tried,
+        False,
+        f'iteration limit: the Gauss-Newton step would still lower the cost by {dec:.3g}',
+    )
 
 
 GATE_MAX_FRACTION = 0.05
@@ -191,6 +267,49 @@ def _reestimate_telemetry_noise(prob: Problem, beta: FloatArray) -> bool:
     return changed
 
 
+NOISE_MIN_VALUES = 30
+"""A station field's noise level is re-estimated from at least this many residuals."""
+
+NOISE_WHITE_LAG1 = 0.5
+"""... and only when their lag-1 autocorrelation is below this: noise larger than declared
+is white, a model that does not follow the trajectory leaves residuals that run in the same
+direction for many epochs (those must show as a misfit, not be absorbed into a sigma)."""
+
+
+def reestimate_station_noise(prob: Problem, beta: FloatArray) -> bool:
+    """Per station and field, the factor its declared sigmas are used with: the robust
+    scale of its whitened residuals (rows kept; 1.4826 x their median absolute value, which
+    a few gross errors do not move: a wild value must be gated, never absorbed into a
+    sigma) when that is significantly above 1 (its square beyond ``1 + 7 / sqrt(n)``, three
+    standard deviations of that estimate for normal residuals) and the residuals are white
+    (lag-1 autocorrelation of the residuals clipped at 3 robust scales below
+    :data:`NOISE_WHITE_LAG1`); else 1. Never below the declared sigma. True if a factor
+    changed by more than 5 %."""
+    changed = False
+    for bi, b in enumerate(prob.stations):
+        pred, _, _ = prob.predict_block(bi, beta)
+        with np.errstate(over='ignore', invalid='ignore'):
+            r = residual(b.fields, np.nan_to_num(b.values), pred) / b.declared
+        use = b.valid & ~prob.gated.get(bi, np.zeros_like(b.valid))
+        order = np.argsort(b.time, kind='stable')
+        for j in range(len(b.fields)):
+            rj = r[order, j][use[order, j]]
+            n = rj.size
+            new = 1.0
+            if n >= NOISE_MIN_VALUES:
+                scale = 1.4826 * float(np.median(np.abs(rj)))
+                if scale * scale > 1.0 + 7.0 / math.sqrt(n):
+                    c = np.clip(rj, -3.0 * scale, 3.0 * scale)
+                    lag1 = float(c[1:] @ c[:-1]) / float(c @ c)
+                    if lag1 < NOISE_WHITE_LAG1:
+                        new = scale
+            if abs(new - b.factor[j]) > 0.05 * b.factor[j]:
+                changed = True
+                b.factor[j] = new
+        b.sigmas = b.declared * b.factor[None, :]
+    return changed
+
+
 # ---------------------------------------------------------------------------------------
 # the robust warm-up
 
@@ -250,9 +369,12 @@ def robust_warm_up(
     first. Each iteration then takes the robust scale of every kind of measurement row
     (:func:`_kind_scales`), weighs the rows by the loss, solves the weighted normal
     equations ``J^T W J step = J^T W r`` (a descent direction of the robust cost) and
-    halves the step while that cost rises. It stops when an accepted step lowers the cost
-    by less than ``tolerance`` times the part of it from rows at full weight, so that the
-    large, nearly constant cost of a gross error does not end it early.
+    takes the plain solve's steps on that cost (Gauss-Newton, then Levenberg-Marquardt
+    damping while the cost rises). While a row is below full weight it stops when an
+    accepted step lowers the cost by less than ``tolerance`` times the part of it from rows
+    at full weight, so that the large, nearly constant cost of a gross error does not end it
+    early; with every row at full weight it is the plain solve, and stops by its test
+    (:func:`decrement`).
 
     A gross error pulls no harder than a residual of ``c`` robust sigmas (Huber; ``c`` is
     ``robust_scale``, default ``GROSS_FACTOR * gate_sigma``) or hardly at all (Cauchy).
@@ -277,33 +399,42 @@ def robust_warm_up(
     halvings = iterations = 0
     message, converged = 'iteration limit', False
     while iterations < cfg.max_iterations:
-        iterations += 1
         assert jac is not None
-        if np.all(w == 1.0):
+        plain = bool(np.all(w == 1.0))
+        if plain:
             n, g = (jac.T @ jac).toarray(), jac.T @ r
+            if decrement(prob, beta, n, g) <= cfg.convergence_decrement:
+                message, converged = 'converged', True  # the plain solve's own test
+                break
         else:
             jw = sp.diags(np.sqrt(w)) @ jac
             n, g = (jw.T @ jw).toarray(), jac.T @ (w * r)
-        step, _, _ = _normal_solve(n, g)
-        omega = 1.0
-        for _ in range(cfg.max_halvings + 1):
-            trial = prob.project(beta + omega * step)
+        iterations += 1
+        accepted = False
+        for lam in (0.0, *LM_LAMBDAS):  # the plain solve's steps (gauss_newton)
+            halvings += lam > 0.0
+            step, _, _ = _normal_solve(n, g, lam)
+            trial = prob.project(beta + step)
             c_new = _robust_terms(prob.evaluate(trial, False)[0], kinds, scales, loss, c)[1]
             if c_new <= cost:
+                accepted = True
                 break
-            omega *= 0.5
-            halvings += 1
-        else:
-            message, converged = 'no step reduces the cost', True
+        if not accepted:
+            message = 'stalled: no step lowers the robust cost'
+            converged = not plain  # a plain stall is judged by gauss_newton's test
             break
         change = cost - c_new
         beta = trial
         r, jac, _ = prob.evaluate(beta, True)
         scales = _kind_scales(r, kinds)
         w, cost, full = _robust_terms(r, kinds, scales, loss, c)
-        if change <= cfg.tolerance * max(full, 1.0):
+        if not plain and change <= cfg.tolerance * max(full, 1.0):
             message, converged = 'converged', True
             break
+    if not converged and message == 'iteration limit' and np.all(w == 1.0):
+        assert jac is not None
+        n = (jac.T @ jac).toarray()
+        converged = decrement(prob, beta, n, jac.T @ r) <= cfg.convergence_decrement
     out = GnOutcome(beta, float(r @ r), iterations, halvings, converged, message)
     return out, dict(zip(ROBUST_KINDS, scales.tolist(), strict=True)), int(np.sum(w < 1.0))
 
@@ -349,6 +480,8 @@ def solve(
         changed = False
         if cfg.estimate_telemetry_noise and prob.telemetry:
             changed |= _reestimate_telemetry_noise(prob, out.beta)
+        if cfg.estimate_station_noise:
+            changed |= reestimate_station_noise(prob, out.beta)
         if cfg.gate_sigma > 0.0:
             changed |= gate_residuals(prob, out.beta, gate_limits(cfg.gate_sigma))
         if not changed:

@@ -70,6 +70,14 @@ class _StationBlock:
     clock: int | None = None  # position of the clock bias in bias_index
     tau: float = 0.0  # clock offset the designs pw, vw (and aw) are evaluated at
     aw: sp.csr_matrix | None = None  # acceleration design (clock Jacobian)
+    # the sigmas as declared, and the factor per field they are used with (``sigmas =
+    # declared * factor``): above 1 when the residuals show white noise larger than declared
+    declared: FloatArray = field(default_factory=lambda: np.zeros((0, 0)))
+    factor: FloatArray = field(default_factory=lambda: np.ones(0))
+
+    def __post_init__(self) -> None:
+        self.declared = self.sigmas.copy()
+        self.factor = np.ones(len(self.fields))
 
 
 @dataclass

@@ -123,6 +123,18 @@ class Estimate:
     residuals : mapping of station id to (time (n,), field names, whitened residual (n, k))
     knot_time, solve_time : float
         Wall time [s] of knot selection and of the Gauss-Newton solve.
+    covariance : ndarray
+        Covariance of every parameter (scaled by ``covariance_scale``).
+    biases : tuple of BiasEstimate
+    covariance_scale : float
+        Factor the formal covariance was scaled by (the chi-square per degree of freedom
+        when it exceeds 1 significantly; :mod:`~orbit_tracking.core.estimation.verdict`).
+    noise_factors : mapping of (station id, field) to float
+        Fields used with sigmas larger than declared, and the factor (white residuals
+        larger than declared).
+    attempts : int
+        Solves the window took (more than 1 when the first was not a success and safer
+        settings were tried).
     """
 
     success: bool
@@ -143,3 +155,6 @@ class Estimate:
     solve_time: float
     covariance: FloatArray = field(repr=False, default_factory=lambda: np.zeros((0, 0)))
     biases: tuple[BiasEstimate, ...] = ()
+    covariance_scale: float = 1.0
+    noise_factors: Mapping[tuple[str, str], float] = field(default_factory=dict)
+    attempts: int = 1

@@ -245,9 +245,10 @@ def solve_windows(
 ) -> list[Estimate]:
     """Solve every window of ``obs`` in time order (the offline counterpart of the node).
 
-    Each window starts from the previous solved window's solution (``previous=``).
-    A window that cannot be solved (any :class:`OrbitTrackingError`) is skipped; the next
-    one starts from the last solved window.
+    Each window starts from the previous successful window's solution (``previous=``).
+    A window that cannot be solved (any :class:`OrbitTrackingError`) is skipped; a window
+    that is not a success is returned (its ``success`` False) but the next one does not
+    start from it.
 
     Parameters
     ----------
@@ -275,7 +276,8 @@ def solve_windows(
             result = exc
         else:
             out.append(result)
-            previous = dict(result.targets)
+            if result.success:  # a failed window is no start for the next
+                previous = dict(result.targets)
         if progress is not None:
             progress(i, len(spans), (t0, t1), result)
     return out
@@ -342,7 +344,8 @@ def stitch(
     Parameters
     ----------
     estimates : sequence of Estimate
-        Window solutions (any order).
+        Window solutions (any order); those that are not a success are left out (their
+        span is missing from the trajectory unless another window covers it).
     times : array_like, shape (m,)
         Requested output times [s]; those no window covers are left out.
     target_id : int, optional
@@ -358,6 +361,7 @@ def stitch(
     cov : ndarray, shape (k, 6, 6)
         ``sum w_k P_k``.
     """
+    estimates = [e for e in estimates if e.success]  # a failed window is not published
     if target_id is None:
         ids = sorted({tid for e in estimates for tid in e.targets})
         if not ids:

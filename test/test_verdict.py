@@ -1,0 +1,163 @@
+"""When a window is a success (issue 14): converged by a test a stalled step cannot pass,
+a fit consistent with the measurement model, retries with safer settings, and a window that
+still does not fit is failed and withheld, never published as final."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+from test_estimator_core import _observations, _problem_on, _truth_spline
+
+from orbit_tracking.core.data.observations import Observations, StationObservations
+from orbit_tracking.core.data.tables import MeasurementTable
+from orbit_tracking.core.estimation.config import EstimatorConfig
+from orbit_tracking.core.estimation.estimator import estimate
+from orbit_tracking.core.estimation.gauss_newton import decrement, gauss_newton
+from orbit_tracking.core.estimation.verdict import chi2_limit, judge
+from orbit_tracking.core.estimation.windows import WindowConfig, solve_windows, stitch
+
+
+def _with_range_offset(obs: Observations, station: str, offset_m: float) -> Observations:
+    """``obs`` with every range of ``station`` off by ``offset_m`` (an unmodelled bias)."""
+    out = []
+    for s in obs.stations:
+        tab = s.table
+        if tab.station_id == station:
+            values = tab.values.copy()
+            values[:, tab.fields.index('range')] += offset_m
+            tab = MeasurementTable(
+                tab.station_id, tab.kind, tab.fields, tab.time, tab.target_id, values, tab.sigmas
+            )
+        out.append(StationObservations(tab, s.pose))
+    return Observations(tuple(out), dict(obs.telemetry), dict(obs.fixes))
+
+
+def _with_sigma_factor(obs: Observations, station: str, factor: float) -> Observations:
+    """``obs`` with the declared sigmas of ``station`` divided by ``factor`` (its noise is
+    then ``factor`` times what it declares)."""
+    out = []
+    for s in obs.stations:
+        tab = s.table
+        if tab.station_id == station:
+            tab = MeasurementTable(
+                tab.station_id,
+                tab.kind,
+                tab.fields,
+                tab.time,
+                tab.target_id,
+                tab.values,
+                tab.sigmas / factor,
+            )
+        out.append(StationObservations(tab, s.pose))
+    return Observations(tuple(out), dict(obs.telemetry), dict(obs.fixes))
+
+
+def test_the_verdict_needs_convergence_and_a_chi2_its_degrees_of_freedom_allow():
+    assert chi2_limit(10_000, 1.5) == 1.5
+    assert chi2_limit(8, 1.5) == pytest.approx(1.0 + 5.0 * math.sqrt(2.0 / 8))
+    ok = judge(True, 1.01, 10_000, 1.5)
+    assert ok.success and ok.covariance_scale == 1.0 and not ok.reasons
+    # significant but within the limit: a success, its covariance scaled by the misfit
+    scaled = judge(True, 1.3, 10_000, 1.5)
+    assert scaled.success and scaled.covariance_scale == pytest.approx(1.3)
+    for v in (
+        judge(False, 1.0, 10_000, 1.5),
+        judge(True, 1.6, 10_000, 1.5),
+        judge(True, math.nan, 10_000, 1.5),
+        judge(True, 1.0, 10_000, 1.5, singular=True),
+        judge(True, 1.0, 10_000, 1.5, gate_refused=0.2),
+        judge(True, 1.0, 10_000, 1.5, finite=False),
+    ):
+        assert not v.success and v.reasons
+
+
+def test_a_solve_cut_short_is_not_converged_and_a_finished_one_is():
+    """The convergence test looks at the point reached, not at the last step: two
+    iterations from the rough start leave a Gauss-Newton step that would still lower the
+    cost a lot, so that is no convergence, whatever the last step's size."""
+    rng = np.random.default_rng(3)
+    traj, coef = _truth_spline([5.0, 10.0, 15.0])
+    obs = _observations(traj, coef, rng, noise=True)
+    cfg = EstimatorConfig(use_telemetry=False)
+    prob, est_traj, beta0 = _problem_on(obs, traj.axes, cfg)
+    n_coef = est_traj.axes[0].n_coef
+    beta0 = beta0.copy()
+    beta0[:n_coef] += 3000.0  # 3 km off along one axis: the models are far from linear
+    beta0[n_coef : 2 * n_coef] -= 2000.0
+    short = gauss_newton(prob, beta0, dataclasses.replace(cfg, max_iterations=1))
+    assert not short.converged and 'iteration limit' in short.message
+    r, jac, _ = prob.evaluate(short.beta, True)
+    n = (jac.T @ jac).toarray()
+    assert decrement(prob, short.beta, n, jac.T @ r) > cfg.convergence_decrement
+    full = gauss_newton(prob, beta0, cfg)
+    assert full.converged and full.message == 'converged'
+    r, jac, _ = prob.evaluate(full.beta, True)
+    n = (jac.T @ jac).toarray()
+    assert decrement(prob, full.beta, n, jac.T @ r) <= cfg.convergence_decrement
+
+
+def test_a_window_whose_model_does_not_fit_the_data_fails_after_its_retries():
+    """A 40 m range bias on one of three CW radars, not declared: no knots and no telemetry
+    setting can fit it (chi2/dof far above the limit), so every retry fails and the
+    window is not a success, whatever its formal covariance says."""
+    rng = np.random.default_rng(4)
+    traj, coef = _truth_spline([5.0, 10.0, 15.0])
+    obs = _with_range_offset(_observations(traj, coef, rng, noise=True), 'cw_b', 40.0)
+    est = estimate(obs, 0.0, 20.0, EstimatorConfig(gate_sigma=0.0))
+    assert not est.success, est.message
+    assert est.attempts == 3 and est.message.startswith('FAILED'), est.message
+    assert est.chi2_dof > chi2_limit(10_000, 1.5)
+    clean = estimate(
+        _observations(traj, coef, np.random.default_rng(4), noise=True), 0.0, 20.0
+    )
+    assert clean.success and clean.attempts == 1, clean.message
+
+
+def test_a_station_noisier_than_declared_is_used_with_its_measured_noise():
+    """One theodolite whose noise is 3x its declared sigma (white): its sigmas are used 3x
+    larger (the factor is reported), the window is a success, and its covariance is
+    honest: the position error over the window lies within the published sigma."""
+    rng = np.random.default_rng(5)
+    traj, coef = _truth_spline([5.0, 10.0, 15.0])
+    noisy = _observations(traj, coef, rng, noise=True)
+    # draw the theodolite's noise 3x larger by declaring a third of it
+    obs = _with_sigma_factor(noisy, 'opt_a', 3.0)
+    est = estimate(obs, 0.0, 20.0, EstimatorConfig(use_telemetry=False))
+    assert est.success, est.message
+    for f in ('azimuth', 'elevation'):
+        assert est.noise_factors[('opt_a', f)] == pytest.approx(3.0, rel=0.1)
+    assert not any(st != 'opt_a' for st, _ in est.noise_factors), est.noise_factors
+    assert 'opt_a azimuth x' in est.message
+    # the reported residual statistics keep the declared scale (they show the mismatch)
+    _, fields, rr = est.residuals['opt_a']
+    assert np.sqrt(np.nanmean(rr[:, fields.index('azimuth')] ** 2)) == pytest.approx(
+        3.0, rel=0.1
+    )
+    t = np.linspace(1.0, 19.0, 50)
+    x, cov = est.targets[0].states(t)
+    # without it the misfit still shows: the whole covariance is scaled by chi2/dof
+    off = estimate(
+        obs, 0.0, 20.0, EstimatorConfig(use_telemetry=False, estimate_station_noise=False)
+    )
+    assert off.covariance_scale > 1.5 and 'scaled by the misfit' in off.message
+    err = x[:, :3] - traj.states(coef, t)[:, :3]
+    nees = np.einsum('ni,nij,nj->n', err, np.linalg.inv(cov[:, :3, :3]), err)
+    assert float(np.mean(nees)) < 3.0 * 3.0  # in band for 3 dof (correlated samples)
+
+
+def test_a_failed_window_neither_starts_the_next_nor_enters_the_trajectory():
+    """Offline: windows are solved in turn; one that fails is returned (its span reported)
+    but the next starts from the last success, and the stitched trajectory leaves it out."""
+    rng = np.random.default_rng(6)
+    traj, coef = _truth_spline(np.arange(2.0, 40.0, 2.0), t1=40.0)
+    obs = _observations(traj, coef, rng, noise=True)
+    ests = solve_windows(obs, EstimatorConfig(), WindowConfig(length=20.0, overlap=5.0))
+    assert len(ests) >= 2 and all(e.success for e in ests), [e.message for e in ests]
+    failed = dataclasses.replace(ests[0], success=False)
+    t = np.linspace(0.0, 40.0, 81)
+    tt, _, _ = stitch([failed, *ests[1:]], t)
+    assert tt.size and tt[0] >= ests[1].t0 - 1e-9
+    assert stitch([failed], t)[0].size == 0
