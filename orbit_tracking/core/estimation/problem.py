@@ -385,8 +385,9 @@ class Problem:
                 jp = _shift(tb.pw[rows_p], o, self.n) + _shift(tb.ew[rows_p], tb.offset, self.n)
                 jv = _shift(tb.vw[rows_v], o, self.n) + _shift(tb.edw[rows_v], tb.offset, self.n)
                 jac.extend([jp / sp_, jv / sv_])
+                # the prior row is 0 - e / sigma: its model e / sigma has derivative +1 / sigma
                 pj = sp.identity(ecoef.size, format='csr') / tb.prior_sigma[0]
-                jac.append(-_shift(pj, tb.offset, self.n))
+                jac.append(_shift(pj, tb.offset, self.n))
                 eye = np.eye(3)
                 for valid, sig, vel in ((use_p, sp_, False), (use_v, sv_, True)):
                     nv = int(valid.sum())
