@@ -26,19 +26,18 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
-_AUTO_DOMAIN = 'ORBIT_TRACKING_TEST_AUTO_DOMAIN'
-
-
 def _isolate_dds() -> None:
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     os.environ['RMW_IMPLEMENTATION'] = 'rmw_fastrtps_cpp'
-    # A domain we picked ourselves is re-picked in each pytest-xdist worker (they inherit the
-    # controller's environment but must not share a domain); a user's choice is kept.
-    if not os.environ.get('ROS_DOMAIN_ID') or (
-        os.environ.get(_AUTO_DOMAIN) and os.environ.get('PYTEST_XDIST_WORKER')
-    ):
+    if not os.environ.get('ROS_DOMAIN_ID'):
         os.environ['ROS_DOMAIN_ID'] = str(1 + os.getpid() % 100)
-        os.environ[_AUTO_DOMAIN] = '1'
+    # pytest-xdist workers inherit the controller's domain and must not share it: worker k
+    # takes the domain 50 k further (in 1..100; the fault suite's second lane uses the
+    # domain after its own, so two workers never meet)
+    worker = os.environ.get('PYTEST_XDIST_WORKER', '')
+    if worker.startswith('gw') and worker[2:].isdigit():
+        base = int(os.environ['ROS_DOMAIN_ID'])
+        os.environ['ROS_DOMAIN_ID'] = str((base - 1 + 50 * int(worker[2:])) % 100 + 1)
 
 
 _isolate_dds()
@@ -47,6 +46,18 @@ CLEAN_EXIT_CODES = {0, -signal.SIGINT, 128 + signal.SIGINT}
 """Exit statuses of a node that shut down cleanly on SIGINT."""
 
 TRACEBACK = 'Traceback (most recent call last)'
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """The tests of a module that starts DDS processes (a ``dds`` test in it) run in one
+    pytest-xdist group (``--dist loadgroup``, as scripts/test runs): they share module
+    fixtures (a replay, a clean pass) that must be made once. Each worker has its own DDS
+    domain (:func:`_isolate_dds`), so two such modules may run side by side."""
+    del config
+    modules = {item.module for item in items if item.get_closest_marker('dds')}
+    for item in items:
+        if item.module in modules:
+            item.add_marker(pytest.mark.xdist_group(f'dds_{item.module.__name__}'))
 
 
 @pytest.hookimpl(wrapper=True, tryfirst=True)

@@ -156,7 +156,7 @@ def test_sigkill_of_the_results_node_mid_pass_and_restart_publishes_every_state(
 def test_sigkill_of_the_triangulation_node_mid_pass_and_restart_loses_no_state(
     tmp_path, clean_pass
 ):
-    """The triangulation node SIGKILLed at 1x after the first window and started again 1 s
+    """The triangulation node SIGKILLed at 2x after the first window and started again 1 s
     later (it keeps no journal: its fixes only seed the estimator's windows, which have
     telemetry here): every state of the clean pass is published once, and the fixes go on
     from the new process."""
@@ -165,7 +165,7 @@ def test_sigkill_of_the_triangulation_node_mid_pass_and_restart_loses_no_state(
     killed = run_pass(
         DATA / 'bags' / RESTART_BAG,
         tmp_path / 'killed',
-        rate=1.0,
+        rate=2.0,
         journal=JOURNAL,
         kill_after_windows=1,
         restart_after=1.0,

@@ -128,8 +128,8 @@ SPAN = (23.0, 44.0)
 
 SPANS = {'windows': (36.0, 44.0)}
 """Spans of the groups that do not use :data:`SPAN`: bad windows and residuals come once the
-estimator has published its first window (solved when the data reach 34 s), as on a running
-system."""
+estimator has published its first window (solved when the data reach 34 s; the replay also
+waits for it, which a loaded machine may deliver seconds later), as on a running system."""
 
 PER_STOP = 3
 """Classes injected at one stop of the replay."""
