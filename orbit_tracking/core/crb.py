@@ -5,7 +5,8 @@ depend on the estimator's choices, so it is that of an *oracle*:
 
 * **Model.** A degree-4 B-spline per axis of a local launch-like frame
   (:func:`local_frame`), whose knots come from the truth (:func:`oracle_spline`): the
-  acceleration jumps of the truth each get a knot of multiplicity ``degree - 1``, and
+  acceleration jumps of the truth each get a knot of multiplicity ``degree - 1`` (its
+  jerk jumps, ``degree - 2``), and
   single knots are inserted by bisection where the least-squares fit of the noise-free
   truth misses it by more than 1 cm in position or 1 mm/s in velocity (vector norms, on a
   dense grid), then dropped again one by one while the fit stays within tolerance. The
@@ -195,6 +196,7 @@ def oracle_spline(
     t0: float,
     t1: float,
     events: Sequence[float] = (),
+    kinks: Sequence[float] = (),
     degree: int = 4,
     position_tol_m: float = 0.01,
     velocity_tol_m_s: float = 1e-3,
@@ -222,6 +224,9 @@ def oracle_spline(
     events : sequence of float
         Times of acceleration jumps [s]; those within ``min_spacing_s`` of the span's
         ends are left to the bisection.
+    kinks : sequence of float
+        Times where the jerk jumps [s] (the acceleration has a kink: a control ramp
+        ending, a pitch-program node): knots of multiplicity ``degree - 2``.
     """
     t = np.asarray(times, dtype=np.float64)
     x = np.asarray(states, dtype=np.float64)
@@ -237,7 +242,8 @@ def oracle_spline(
     tol_p = position_tol_m / np.sqrt(3.0)
     tol_v = velocity_tol_m_s / np.sqrt(3.0)
     ev = sorted({float(e) for e in events if t0 + min_spacing_s < e < t1 - min_spacing_s})
-    fixed = [e for e in ev for _ in range(degree - 1)]
+    kk = sorted({float(e) for e in kinks if t0 + min_spacing_s < e < t1 - min_spacing_s} - set(ev))
+    fixed = [e for e in ev for _ in range(degree - 1)] + [e for e in kk for _ in range(degree - 2)]
     axes: list[SplineAxis] = []
     coefs: list[FloatArray] = []
     rounds_run = 0
@@ -453,7 +459,8 @@ class Bound:
     velocity_var : ndarray, shape (m,)
         Trace of the velocity block [m^2/s^2].
     singular : bool
-        The information matrix could not be inverted (some direction is not observed).
+        Some direction of the parameters is not observed (the states that depend on it
+        have an infinite bound).
     parameters : int
         Spline coefficients (nuisance parameters not counted).
     """
@@ -477,15 +484,25 @@ class Bound:
         return float(np.sqrt(np.mean(sel))) if sel.size else float('nan')
 
 
-def bound(traj: SplineTrajectory, information: ArrayLike, times: ArrayLike) -> Bound:
+def bound(
+    traj: SplineTrajectory,
+    information: ArrayLike,
+    times: ArrayLike,
+    null_tolerance: float = 1e-12,
+) -> Bound:
     """Invert the information and map it to the states at ``times``.
+
+    The Jacobi-scaled information is decomposed into eigenvectors; directions with an
+    eigenvalue below ``null_tolerance`` times the largest are not observed. A state that
+    depends on one of them has an infinite bound; every other state's covariance is
+    ``G F^+ G^T`` over the observed directions (the coefficient block of ``F^-1`` where
+    ``F`` is invertible, nuisance parameters included in ``F`` and eliminated).
 
     Parameters
     ----------
     traj : SplineTrajectory
     information : array_like, shape (n_coef + q, n_coef + q)
-        Coefficients first, then any nuisance parameters (eliminated here by taking the
-        coefficient block of the inverse).
+        Coefficients first, then any nuisance parameters.
     times : array_like, shape (m,)
         Truth sampling times [s] inside the spline span.
     """
@@ -493,27 +510,25 @@ def bound(traj: SplineTrajectory, information: ArrayLike, times: ArrayLike) -> B
     n_c = traj.n_coef
     if f.ndim != 2 or f.shape[0] != f.shape[1] or f.shape[0] < n_c:
         raise ValueError(f'information must be square and at least ({n_c}, {n_c}); got {f.shape}')
+    if not np.all(np.isfinite(f)):
+        raise ValueError('information must be finite')
     t = np.asarray(times, dtype=np.float64)
-    d = np.sqrt(np.diag(f))
-    singular = bool(np.any(d[:n_c] <= 0.0) or not np.all(np.isfinite(f)))
-    cov = np.zeros((n_c, n_c))
-    if not singular:
-        fs = f / np.outer(d, d)
-        try:
-            chol = sla.cho_factor(0.5 * (fs + fs.T), lower=True)
-            cond = np.linalg.cond(fs)
-            singular = not np.isfinite(cond) or cond > 1e14
-            inv = sla.cho_solve(chol, np.eye(f.shape[0]))
-            cov = (inv / np.outer(d, d))[:n_c, :n_c]
-        except np.linalg.LinAlgError:
-            singular = True
-    if singular:
-        inf = np.full(t.size, np.inf)
-        return Bound(t, inf, inf.copy(), True, n_c)
+    d = np.sqrt(np.maximum(np.diag(f), 0.0))
+    d = np.where(d > 0.0, d, 1.0)
+    w, v = np.linalg.eigh(0.5 * (f + f.T) / np.outer(d, d))
+    null = w <= null_tolerance * max(float(w.max()), 1e-300)
+    # G D^-1 V for the coefficient rows (nuisance parameters do not enter the states)
+    vc = v[:n_c] / d[:n_c, None]
     out = []
     for nu in (0, 1):
-        g = traj.world_design(t, nu)
-        gc = np.asarray(g @ cov)
-        per_row = np.asarray(g.multiply(gc).sum(axis=1)).ravel()
-        out.append(per_row.reshape(t.size, 3).sum(axis=1))
-    return Bound(t, out[0], out[1], False, n_c)
+        var = np.empty(t.size)
+        for lo in range(0, t.size, 2000):  # bounded memory for long spans
+            g = traj.world_design(t[lo : lo + 2000], nu)
+            gv = np.asarray(g @ vc)
+            seen = np.sum(gv[:, ~null] ** 2 / w[~null], axis=1)
+            leak = np.sum(gv[:, null] ** 2, axis=1)
+            total = np.sum(gv**2, axis=1)
+            rows = np.where(leak > 1e-8 * np.maximum(total, 1e-300), np.inf, seen)
+            var[lo : lo + 2000] = rows.reshape(-1, 3).sum(axis=1)
+        out.append(var)
+    return Bound(t, out[0], out[1], bool(np.any(null)), n_c)
