@@ -406,7 +406,7 @@ def _segments(
             where = str(rng.choice(['event', 'window_edge', 'start', 'anywhere']))
             if where == 'event' and events:
                 start = float(rng.choice(np.asarray(events))) - rng.uniform(0.2, 0.8) * length
-            elif where == 'window_edge':
+            elif where == 'window_edge' and span > _WINDOW_EDGES[0] + 5.0:
                 edges = [e for e in _WINDOW_EDGES if e < span - 5.0]
                 start = float(rng.choice(edges)) - rng.uniform(0.2, 0.8) * length
             elif where == 'start':
