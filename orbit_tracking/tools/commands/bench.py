@@ -96,6 +96,18 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         if args.write_docs:
             write_docs(args.docs, 'dds', text)
             print(f'updated {args.docs}')
+    if args.suite == 'robustness':  # randomised draws against their own CRB; not part of 'all'
+        from orbit_tracking.tools.bench.robustness import robustness_tables, run_robustness
+
+        text = robustness_tables(
+            run_robustness(
+                args.draws, args.kind, args.seed, args.jobs, None if args.quiet else print
+            )
+        )
+        print(text)
+        if args.write_docs:
+            write_docs(args.docs, 'robustness', text)
+            print(f'updated {args.docs}')
     if args.suite == 'faults':  # bad messages into the live nodes over DDS; not part of 'all'
         from orbit_tracking.tools.bench.faults import (
             EXTRA_ROWS,
@@ -188,7 +200,7 @@ def add_bench(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     s.add_argument('--quiet', action='store_true', help='no progress lines')
     s.add_argument(
         '--suite',
-        choices=('triangulation', 'estimator', 'biases', 'all', 'dds', 'faults'),
+        choices=('triangulation', 'estimator', 'biases', 'all', 'dds', 'faults', 'robustness'),
         default='all',
         help='which benchmark to run (default: all; dds, the live nodes over DDS, and faults, '
         'bad messages thrown at them, only when asked)',
@@ -211,4 +223,13 @@ def add_bench(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     s.add_argument('--lanes', type=int, default=2, help='faults: replays run at a time (1 or 2)')
     s.add_argument('--logs', type=Path, help='faults: keep the node logs of every replay here')
+    s.add_argument('--draws', type=int, default=20, help='robustness: randomised draws in all')
+    s.add_argument(
+        '--kind',
+        choices=('ascent', 'aircraft', 'all'),
+        default='all',
+        help='robustness: scenario family (all: half the draws each)',
+    )
+    s.add_argument('--seed', type=int, default=0, help='robustness: seed of the first draw')
+    s.add_argument('--jobs', type=int, default=2, help='robustness: draws run at a time')
     s.set_defaults(func=_cmd_bench)
