@@ -1,0 +1,129 @@
+"""The robustness suite of issue 14 (orbit_tracking.tools.bench.robustness): a short seeded
+slice runs end to end and fills every column; a method that raises, a draw that cannot be
+made and a worker process that dies are recorded, never fatal."""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from functools import cache
+
+import pytest
+
+from orbit_tracking.tools.bench.robustness import (
+    RobustnessRun,
+    _run_all,
+    plan_draws,
+    robustness_tables,
+    run_robustness,
+)
+from orbit_tracking.tools.bench.robustness_draw import METHODS, run_draw
+from orbit_tracking.tools.cli import build_parser
+
+Q = {'ascent': 30.0, 'aircraft': 3.0}
+"""Fixed KF jerk densities (tuning on the truth is the suite's first, slow step)."""
+
+
+@cache
+def _slice() -> tuple[RobustnessRun, float]:
+    start = time.monotonic()
+    run = run_robustness(2, 'all', seed=1, jobs=0, progress=None, kalman_q=Q, span_s=40.0)
+    return run, time.monotonic() - start
+
+
+@pytest.mark.timeout(180)
+def test_a_short_seeded_slice_runs_end_to_end_and_fills_every_column():
+    run, elapsed = _slice()
+    # budget 60 s on the 2-core machine (allowing for a busy machine: other tests run too)
+    assert elapsed < 90.0, elapsed
+    assert [(r.kind, r.seed) for r in run.draws] == [('ascent', 1), ('aircraft', 1)]
+    for r in run.draws:
+        assert not r.error, r.error
+        assert set(r.bounds) == {'stations', 'stations+telemetry'}
+        assert r.oracle[0] <= 0.01 and r.oracle[2] <= 0.001
+        assert [m.method for m in r.methods] == list(METHODS)
+        for m in r.methods:
+            assert m.ran, m.error
+            assert math.isfinite(m.pos_rms_out) and math.isfinite(m.vel_rms_out)
+            assert math.isfinite(m.wall_s) and m.windows >= 1 and m.states > 0
+            assert m.nees_n >= 1 and m.nees_lo < 3.0 < m.nees_hi
+            assert 0.0 < m.coverage <= 1.0
+    text = robustness_tables(run)
+    for heading in (
+        'gap pos RMS/CRB',
+        'out pos RMS/CRB',
+        'gap vel RMS/CRB',
+        'out vel RMS/CRB',
+        'mean NEES',
+        'NEES in its 95 % band',
+        'windows unsuccessful / raised',
+        'silent failures',
+        'wall per draw',
+        'slowest window',
+        'better than KF+RTS',
+        'silent failures: 0 over >= 200 draws',
+        'no window over 3 s wall',
+        'Worst draws',
+        '--suite robustness --kind ascent --seed 1 --draws 1',
+    ):
+        assert heading in text, heading
+    for name in METHODS:
+        assert f'| {name} ' in text
+
+
+def test_a_method_that_raises_is_recorded_as_failing_on_that_draw():
+    r = run_draw(
+        'ascent', 2, Q['ascent'], methods=('ours', 'KF+RTS'), fail={'ours': 'boom'}, span_s=40.0
+    )
+    assert not r.error
+    ours, kf = r.methods
+    assert not ours.ran and ours.error == 'RuntimeError: boom'
+    assert kf.ran and math.isfinite(kf.pos_rms_out)
+    run = RobustnessRun([r], Q, 'test', 0)
+    assert '`ours` failed: RuntimeError: boom' in robustness_tables(run)
+
+
+def test_a_draw_that_cannot_be_made_is_recorded_with_its_message():
+    r = run_draw('balloon', 0, 1.0)
+    assert 'family' in r.error and not r.methods
+    text = robustness_tables(RobustnessRun([r], Q, 'test', 0))
+    assert 'could not be simulated or bounded' not in text  # no such kind: no section
+
+
+def _die_on_odd(x: int) -> int:
+    if x % 2:
+        os._exit(3)  # a crash in compiled code looks like this to the pool
+    return x
+
+
+@pytest.mark.timeout(120)
+def test_a_worker_that_dies_is_recorded_and_the_others_finish():
+    got = _run_all(_die_on_odd, [0, 1, 2], 1, lambda x, why: -1, lambda _r: None)
+    assert got == [0, -1, 2]
+
+
+def test_draws_are_split_over_the_kinds_with_consecutive_seeds():
+    assert plan_draws(5, 'all', 7) == [
+        ('ascent', 7),
+        ('ascent', 8),
+        ('ascent', 9),
+        ('aircraft', 7),
+        ('aircraft', 8),
+    ]
+    assert plan_draws(2, 'aircraft') == [('aircraft', 0), ('aircraft', 1)]
+    with pytest.raises(ValueError, match='kind'):
+        plan_draws(2, 'balloon')
+
+
+def test_bench_command_takes_the_robustness_options():
+    args = build_parser().parse_args(
+        ['bench', '--suite', 'robustness', '--draws', '3', '--kind', 'ascent', '--seed', '5']
+    )
+    assert (args.suite, args.draws, args.kind, args.seed, args.jobs) == (
+        'robustness',
+        3,
+        'ascent',
+        5,
+        2,
+    )
