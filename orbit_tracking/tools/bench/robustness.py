@@ -278,15 +278,19 @@ def _methods(rs: Sequence[DrawResult], name: str) -> list[MethodResult]:
 
 def _accuracy_table(rs: Sequence[DrawResult]) -> list[str]:
     lines = [
-        '| method (bound) | ran | gap pos RMS/CRB | out pos RMS/CRB | gap vel RMS/CRB | '
-        'out vel RMS/CRB | gap pos RMS [m] | out pos RMS [m] |',
-        '|---|---|---|---|---|---|---|---|',
+        '| method (bound) | ran | bound infinite (gap / out) | gap pos RMS/CRB | '
+        'out pos RMS/CRB | gap vel RMS/CRB | out vel RMS/CRB | gap pos RMS [m] | '
+        'out pos RMS [m] |',
+        '|---|---|---|---|---|---|---|---|---|',
     ]
     for name in METHODS:
         ms = _methods(rs, name)
         ok = [m for m in ms if m.ran]
+        # a ratio is undefined where the bound is infinite (an unobserved direction)
+        inf_gap = sum(math.isfinite(m.pos_rms_gap) and math.isnan(m.pos_ratio_gap) for m in ok)
+        inf_out = sum(math.isfinite(m.pos_rms_out) and math.isnan(m.pos_ratio_out) for m in ok)
         lines.append(
-            f'| {name} ({BOUND_OF[name]}) | {len(ok)}/{len(ms)} | '
+            f'| {name} ({BOUND_OF[name]}) | {len(ok)}/{len(ms)} | {inf_gap} / {inf_out} | '
             f'{_mpw([m.pos_ratio_gap for m in ok])} | {_mpw([m.pos_ratio_out for m in ok])} | '
             f'{_mpw([m.vel_ratio_gap for m in ok])} | {_mpw([m.vel_ratio_out for m in ok])} | '
             f'{_mpw([m.pos_rms_gap for m in ok], ".3g")} | '
