@@ -21,7 +21,9 @@ Methods, all on the same simulated measurements:
   tuned on the truth (:func:`tune_kalman`) and its innovation gate on
   (:data:`KALMAN_GATE`), since the draws hold gross errors.
 
-Scores (:class:`MethodResult`), at the truth sampling times (20 Hz) each method covers:
+Scores (:class:`MethodResult`), at the truth sampling times (20 Hz) each method covers
+within the draw's data span (first to last station value; outside it every method, the
+oracle too, would only extrapolate):
 position and velocity RMS error inside the draw's gaps and outside them, and their ratio
 to the bound of the same samples (``ours``: stations and telemetry; the other two:
 stations only; :mod:`orbit_tracking.core.crb`); the mean position NEES of one sample
@@ -213,15 +215,24 @@ def _case(kind: str, seed: int, span_s: float | None = None) -> _Case:
     with_fixes = _fixes(result)
     # as `orbit-tracking estimate`: telemetry is the rough trajectory; without it, fixes
     obs_est = Observations.from_simulation(result) if result.telemetry else with_fixes
-    in_gap = np.zeros(tr.time.size, dtype=bool)
+    # scored where there are station data: before the first value and after the last,
+    # every method (and the oracle) would only extrapolate
+    t_data = np.concatenate(
+        [t.time[t.target_id == TARGET] for t in result.measurements.values()] or [np.zeros(0)]
+    )
+    if t_data.size == 0:
+        raise EstimationError(f'{kind} seed {seed}: no station sees the target')
+    keep = (tr.time >= t_data.min() - 1e-9) & (tr.time <= t_data.max() + 1e-9)
+    t_eval = tr.time[keep]
+    in_gap = np.zeros(t_eval.size, dtype=bool)
     for a, b in d.scenario.gaps:
-        in_gap |= (tr.time >= a) & (tr.time <= b)
+        in_gap |= (t_eval >= a) & (t_eval <= b)
     return _Case(
         d,
         world,
         result,
-        tr.time,
-        np.hstack([tr.position, tr.velocity]),
+        t_eval,
+        np.hstack([tr.position, tr.velocity])[keep],
         obs_est,
         with_fixes,
         in_gap,
@@ -299,9 +310,10 @@ def _score(
 ) -> MethodResult:
     """Scores of states ``x`` (k, 6), covariances ``cov`` at covered truth times ``tt``;
     ``claims(t)`` says where every window covering a time claims success."""
-    idx = np.searchsorted(case.truth_t, tt)
-    idx = np.clip(idx, 0, case.truth_t.size - 1)
-    if tt.size == 0 or not np.allclose(case.truth_t[idx], tt, atol=1e-6):
+    if tt.size == 0:
+        raise EstimationError('no output state')
+    idx = np.clip(np.searchsorted(case.truth_t, tt), 0, case.truth_t.size - 1)
+    if not np.allclose(case.truth_t[idx], tt, atol=1e-6):
         raise ValueError('method states must be at the truth sampling times')
     e = x - case.truth_x[idx]
     gap = case.in_gap[idx]
@@ -377,6 +389,9 @@ def _run_ours(
             why = '; '.join(w for *_, w in spans if w) or 'no data'
             raise EstimationError(f'no window could be solved ({why})')
         tt, x, cov = stitch(estimates, case.truth_t, TARGET)
+        if tt.size == 0:  # every window failed: the trajectory leaves them out
+            why = '; '.join(w for *_, w in spans if w)[:300]
+            raise EstimationError(f'no output state: no window succeeded ({why})')
 
     def claims(t: FloatArray) -> NDArray[np.bool_]:
         ok = np.ones(t.size, dtype=bool)
