@@ -299,7 +299,7 @@ def estimate_bag(
         for tid in targets:
             files.append(out / f'trajectory_target_{tid}.csv')
             write_trajectory_csv(files[-1], *tracks[tid], tb.ref_ns)
-    final = final_biases([(e.t0, e.t1, e.biases) for e in estimates])
+    final = final_biases([(e.t0, e.t1, e.biases) for e in estimates if e.success])
     files.append(out / 'biases.csv')
     write_biases_csv(files[-1], [b for b, _ in final])
     files.append(out / 'biases_by_window.csv')
@@ -316,6 +316,8 @@ def estimate_bag(
                 msg.child_frame_id = 'target'
             msgs.append((tb.to_ns(tt[i]), topic, msg))
     for e in estimates:
+        if not e.success:  # withheld, as the node withholds it (its states may not be finite)
+            continue
         ts, ids, xs, cs = [], [], [], []
         for tid, sol in sorted(e.targets.items()):
             t = output_times(sol.t0, sol.t1, win_cfg.output_step)

@@ -13,6 +13,7 @@ the range free).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -70,9 +71,13 @@ def find_incomplete_segments(
         rough trajectory).
     """
     cfg = cfg or CoverageConfig()
-    edges = np.arange(t0, t1 + cfg.bin * 0.5, cfg.bin)
-    if edges.size < 2:
+    if not t1 > t0:
         return []
+    # bins on multiples of the bin width, the window's partial end bins merged into their
+    # neighbours: moving a window edge by a microsecond moves no segment
+    b0 = math.floor(t0 / cfg.bin + 0.5) + 1
+    b1 = math.ceil(t1 / cfg.bin - 0.5) - 1
+    edges = np.concatenate([[t0], np.arange(b0, b1 + 1, dtype=np.float64) * cfg.bin, [t1]])
     nb = edges.size - 1
     info = np.zeros((nb, 6, 6))
     rows = np.zeros(nb, dtype=int)

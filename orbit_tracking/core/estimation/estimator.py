@@ -53,10 +53,16 @@ from orbit_tracking.core.estimation.gauss_newton import covariance, solve
 from orbit_tracking.core.estimation.knot_refinement import (
     choose_knots_safely,
     polynomial_selection,
+    prune_knots,
     rebuild,
     refine_knots,
 )
-from orbit_tracking.core.estimation.knots import KnotSelection, RoughTrajectory, rough_trajectory
+from orbit_tracking.core.estimation.knots import (
+    KnotSelection,
+    RoughTrajectory,
+    rough_trajectory,
+    selection_span,
+)
 from orbit_tracking.core.estimation.observability import bias_estimates, freeze_unobservable
 from orbit_tracking.core.estimation.problem import Problem
 from orbit_tracking.core.estimation.results import Estimate, TargetSolution, state_covariance
@@ -123,7 +129,8 @@ def _estimate_once(
     cfg = cfg or EstimatorConfig()
     if not t1 > t0:
         raise EstimationError(f'window must have t1 > t0; got [{t0}, {t1}]')
-    obs = obs.window(t0, t1)
+    everything, obs = obs, obs.window(t0, t1)
+    wide = selection_span(t0, t1, cfg.knots)
     ids = list(target_ids) if target_ids is not None else obs.target_ids
     if not ids:
         raise EstimationError(f'no measurements in window [{t0:.3f}, {t1:.3f}]')
@@ -151,8 +158,20 @@ def _estimate_once(
         if cfg.knot_method == 'polynomial':
             sel = polynomial_selection(rough, t0, t1, cfg.polynomial_degree)
         else:
+            # knots chosen on the rough trajectory around the window: the same whether an
+            # edge moves by a microsecond or not (knots.selection_span)
+            around = rough_trajectory(everything, tid, *wide)
+            context = (around, *wide) if around and around.source == rough.source else None
             sel = choose_knots_safely(
-                rough, t0, t1, segs, cfg, cfg.knot_method, frame, cfg.baseline_spacing
+                rough,
+                t0,
+                t1,
+                segs,
+                cfg,
+                cfg.knot_method,
+                frame,
+                cfg.baseline_spacing,
+                context=context,
             )
         if previous and tid in previous:
             sel = _seed_from_previous(sel, previous[tid], rough)
@@ -232,6 +251,21 @@ def _estimate_once(
         iterations += it2
         halvings += h2
         r, jac, cov, cond, singular = covariance(prob, out.beta)
+    pruned = {tid: 0 for tid in selections}
+    if cfg.prune_z > 0.0 and cfg.knot_method == 'sparse':
+        # knots the measurements do not support go before the knot test adds any
+        reduced = prune_knots(prob, out.beta, cov, cfg.prune_z)
+        if reduced:
+            prob, beta = rebuild(prob, out.beta, reduced, {}, obs, cfg, t0, t1)
+            for tid in reduced:
+                pruned[tid] = sum(a.interior.size for a in selections[tid].trajectory.axes) - sum(
+                    a.interior.size for a in prob.trajs[tid].axes
+                )
+                selections[tid] = replace(selections[tid], trajectory=prob.trajs[tid])
+            out, it2, h2 = solve(prob, beta, cfg, warm_up=False)
+            iterations += it2
+            halvings += h2
+            r, jac, cov, cond, singular = covariance(prob, out.beta)
     added = {tid: 0 for tid in selections}
     refine_note = ''
     for _ in range(cfg.refine_rounds):
@@ -259,7 +293,7 @@ def _estimate_once(
         halvings += h2
         r, jac, cov, cond, singular = covariance(prob, out.beta)
     for tid, n_added in added.items():
-        selections[tid] = replace(selections[tid], refined=n_added)
+        selections[tid] = replace(selections[tid], refined=n_added, pruned=pruned[tid])
     solve_time = _time.perf_counter() - s_start
     used: Counter[str] = Counter()
     rejected: Counter[tuple[str, str]] = Counter()
@@ -458,22 +492,30 @@ def safer_settings(
 def _seed_from_previous(
     sel: KnotSelection, prev: TargetSolution, rough: RoughTrajectory
 ) -> KnotSelection:
-    """Initial coefficients: the previous window's trajectory where it overlaps, the
-    rough trajectory beyond."""
+    """Initial coefficients: the previous window's trajectory where it overlaps, the rough
+    trajectory's fit on the new knots beyond.
 
+    Both are sampled eight times per knot interval of the new spline (whatever its knot
+    density), so that every coefficient is fitted to samples: a coarse sampling of a
+    spline with dense knots leaves coefficients without data, which a least-squares fit
+    sets to the frame origin (an initial guess 1e5 m off)."""
+    del rough  # its fit on the new knots is ``sel.coef``
     traj = sel.trajectory
     a, b = max(traj.t0, prev.t0), min(traj.t1, prev.t1)
     if b - a < 1.0:
         return sel
-    t_prev = np.linspace(a, b, max(10, int((b - a) * 10) + 1))
-    xp = prev.trajectory.states(prev.coef, t_prev)
-    keep = rough.time > b
-    t = np.concatenate([t_prev, rough.time[keep]])
-    state = rough.state(rough.time[keep])
-    pos = np.vstack([xp[:, :3], state[:, :3]])
-    vel = np.vstack([xp[:, 3:], state[:, 3:]])
+    brk = np.unique(np.concatenate([ax.knots for ax in traj.axes]))
+    brk = brk[(brk >= traj.t0) & (brk <= traj.t1)]
+    t = np.unique(
+        np.concatenate([np.linspace(lo, hi, 8) for lo, hi in zip(brk[:-1], brk[1:], strict=True)])
+    )
+    inside = (t >= a) & (t <= b)
+    x = traj.states(sel.coef, t)
+    x[inside] = prev.trajectory.states(prev.coef, t[inside])
     try:
-        coef = traj.fit_states(t, pos, vel, 1.0, 100.0)
+        coef = traj.fit_states(t, x[:, :3], x[:, 3:], 1.0, 100.0)
     except np.linalg.LinAlgError:
+        return sel
+    if not np.all(np.isfinite(coef)):
         return sel
     return replace(sel, coef=coef)

@@ -24,7 +24,7 @@ from orbit_tracking.core.estimation.knots import (
 )
 from orbit_tracking.core.estimation.problem import Problem
 
-__all__ = ['choose_knots_safely', 'polynomial_selection', 'rebuild', 'refine_knots']
+__all__ = ['choose_knots_safely', 'polynomial_selection', 'prune_knots', 'rebuild', 'refine_knots']
 
 FloatArray = NDArray[np.float64]
 
@@ -53,7 +53,12 @@ def _knot_scores(
     for lo, hi in zip(brk[:-1], brk[1:], strict=True):
         if hi - lo < min_len:
             continue
-        tau = 0.5 * (lo + hi)
+        # the midpoint on the time axis's grid of min_len / 2: an interval that ends at a
+        # window edge gets the same candidate whether the edge moved by 1e-6 s or not
+        q = 0.5 * min_len
+        tau = round(0.5 * (lo + hi) / q) * q
+        if not lo + 0.5 * q <= tau <= hi - 0.5 * q:
+            continue
         idx = int(np.searchsorted(ax.knots, tau))
         refined = np.insert(ax.knots, idx, tau)
         s0 = min(max(idx - 2, 0), refined.size - p - 2)
@@ -155,6 +160,52 @@ def refine_knots(
     return out, tel_out
 
 
+def prune_knots(
+    prob: Problem, beta: FloatArray, cov: FloatArray, z_min: float
+) -> dict[int, list[SplineAxis]]:
+    """Knots the measurements do not support (beyond the paper; the counterpart of
+    :func:`refine_knots`).
+
+    At every single interior knot of every axis, the Wald statistic of the jump of the
+    ``degree``-th derivative there (seed 000's eqs. 10-13): ``|d| / sd(d)`` with ``d = C c``
+    and ``sd`` from the solution's covariance. A knot whose jump the data cannot tell from
+    zero (below ``z_min``) only lets the spline bend where nothing says it does: it is
+    dropped. Repeated knots (events) are kept. The rough trajectory chose the knots; this
+    test keeps only those the measurements (and fused telemetry) determine, so the window's
+    model, and its covariance, no longer depend on which of several near-equal knot sets
+    the l1 problem returned.
+
+    Returns the reduced axes per target (only those that changed).
+    """
+    out: dict[int, list[SplineAxis]] = {}
+    for tid, traj in prob.trajs.items():
+        o = prob.offsets[tid]
+        axes = list(traj.axes)
+        changed = False
+        for a, ax in enumerate(traj.axes):
+            n = ax.n_coef
+            c_mat, tau = ax.jump_matrix()
+            if not tau.size:
+                o += n
+                continue
+            c = beta[o : o + n]
+            p = cov[o : o + n, o : o + n]
+            o += n
+            jump = c_mat @ c
+            var = np.einsum('ij,ij->i', (c_mat @ p), c_mat.toarray())
+            with np.errstate(divide='ignore', invalid='ignore'):
+                z = np.abs(jump) / np.sqrt(np.maximum(var, 0.0))
+            mult = np.array([np.count_nonzero(np.abs(ax.interior - t) < 1e-9) for t in tau])
+            drop = tau[(mult == 1) & ~(z >= z_min)]
+            if drop.size:
+                keep = [k for k in ax.interior if np.min(np.abs(drop - k)) > 1e-9]
+                axes[a] = SplineAxis.from_interior(np.asarray(keep), ax.t0, ax.t1, ax.degree)
+                changed = True
+        if changed:
+            out[tid] = axes
+    return out
+
+
 def rebuild(
     prob: Problem,
     beta: FloatArray,
@@ -165,8 +216,9 @@ def rebuild(
     t0: float,
     t1: float,
 ) -> tuple[Problem, FloatArray]:
-    """The problem on refined knots, started from the current solution (refined knots
-    contain the old ones, so the current spline is represented exactly)."""
+    """The problem on new knots, started from the current solution (refined knots contain
+    the old ones, so the current spline is represented exactly; pruned ones get its
+    least-squares fit)."""
     sols: dict[int, tuple[SplineTrajectory, FloatArray]] = {}
     for tid, traj in prob.trajs.items():
         coef = prob._coef(beta, tid)
@@ -225,13 +277,14 @@ def choose_knots_safely(
     frame: tuple[FloatArray, FloatArray] | None,
     baseline_spacing: float = 3.0,
     events: Sequence[float] | None = None,
+    context: tuple[RoughTrajectory, float, float] | None = None,
 ) -> KnotSelection:
     """:func:`choose_knots`, but a failed l1 problem never loses the window: the other
     installed interior-point solver is tried, then the densified knots are kept (the
     reason is recorded in the selection's ``info``)."""
     try:
         return choose_knots(
-            rough, t0, t1, segments, cfg.knots, method, frame, baseline_spacing, events
+            rough, t0, t1, segments, cfg.knots, method, frame, baseline_spacing, events, context
         )
     except KnotSelectionError as first:
         reason = str(first)
@@ -239,12 +292,14 @@ def choose_knots_safely(
         try:
             alt = replace(cfg.knots, solver='CLARABEL')
             sel = choose_knots(
-                rough, t0, t1, segments, alt, method, frame, baseline_spacing, events
+                rough, t0, t1, segments, alt, method, frame, baseline_spacing, events, context
             )
             return replace(sel, info={**sel.info, 'fallback': f'CLARABEL after: {reason}'})
         except KnotSelectionError as second:
             reason += f'; CLARABEL: {second}'
-    sel = choose_knots(rough, t0, t1, segments, cfg.knots, 'dense', frame, events=events)
+    sel = choose_knots(
+        rough, t0, t1, segments, cfg.knots, 'dense', frame, events=events, context=context
+    )
     return replace(sel, info={'fallback': f'densified knots kept: {reason}'})
 
 

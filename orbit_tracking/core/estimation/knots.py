@@ -25,6 +25,7 @@ kept together they read top to bottom like the seed's section 3.
 
 from __future__ import annotations
 
+import math
 import time as _time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -48,6 +49,7 @@ __all__ = [
     'dynamics_knots',
     'rough_trajectory',
     'select_knots',
+    'selection_span',
     'spline_frame',
     'uniform_knots',
 ]
@@ -299,8 +301,25 @@ def _refine_event(t: FloatArray, v: FloatArray, tc: float, w: float, dt: float) 
 
 
 def _grid(t0: float, t1: float, spacing: float) -> FloatArray:
-    n = max(1, int(np.ceil((t1 - t0) / spacing - 1e-9)))
-    return np.linspace(t0, t1, n + 1)
+    """``t0``, the multiples of ``spacing`` strictly inside (``t0``, ``t1``) and ``t1``: a
+    grid anchored to the time axis, not to the window, so that moving a window's edges moves
+    none of its interior knots (a grid anchored at ``t0`` shifted by 1e-8 s met a segment's
+    own grid 1e-8 s away and made the l1 problem degenerate)."""
+    k0 = math.floor(t0 / spacing + 1e-9) + 1
+    k1 = math.ceil(t1 / spacing - 1e-9) - 1
+    inner = np.arange(k0, k1 + 1, dtype=np.float64) * spacing
+    inner = inner[(inner > t0 + 1e-9 * spacing) & (inner < t1 - 1e-9 * spacing)]
+    return np.concatenate([[t0], inner, [t1]])
+
+
+def _merge_close(knots: FloatArray, gap: float) -> FloatArray:
+    """Sorted knots with those closer than ``gap`` to the previous one kept dropped."""
+    knots = np.sort(knots)
+    keep = [0] if knots.size else []
+    for i in range(1, knots.size):
+        if knots[i] - knots[keep[-1]] >= gap:
+            keep.append(i)
+    return knots[keep]
 
 
 def uniform_knots(
@@ -312,22 +331,23 @@ def uniform_knots(
     events: Sequence[float] = (),
     degree: int = 4,
 ) -> FloatArray:
-    """Interior knots: every ``spacing`` s, every ``segment_spacing`` s inside the
-    segments, and each event repeated ``degree - 1`` times (ordinary knots closer than a
-    third of the local spacing to an event are dropped)."""
+    """Interior knots: the multiples of ``spacing`` s, the multiples of ``segment_spacing``
+    s inside the segments (and their ends), and each event repeated ``degree - 1`` times
+    (ordinary knots closer than a third of the local spacing to an event are dropped).
+    Knots closer than a quarter of the finer spacing to each other, or to the window's ends,
+    are dropped."""
     pts = [_grid(t0, t1, spacing)]
     for a, b in segments:
         a, b = max(a, t0), min(b, t1)
         if b > a and segment_spacing:
-            inside = pts[0][(pts[0] > a) & (pts[0] < b)]
             pts[0] = pts[0][(pts[0] <= a) | (pts[0] >= b)]
-            del inside
             pts.append(_grid(a, b, segment_spacing))
-    knots = np.unique(np.concatenate(pts))
-    knots = knots[(knots > t0 + 1e-9) & (knots < t1 - 1e-9)]
+    local = min(spacing, segment_spacing or spacing)
+    knots = _merge_close(np.concatenate(pts), 0.25 * local)
+    # nor closer than that to the window's ends: an edge moved by 1e-6 s changes no knot
+    knots = knots[(knots > t0 + 0.25 * local) & (knots < t1 - 0.25 * local)]
     ev = np.asarray([e for e in events if t0 < e < t1])
     if ev.size:
-        local = np.minimum(spacing, segment_spacing or spacing)
         near = np.min(np.abs(knots[:, None] - ev[None, :]), axis=1) < local / 3.0
         knots = knots[~near]
         knots = np.sort(np.concatenate([knots, np.repeat(ev, degree - 1)]))
@@ -355,14 +375,17 @@ def _whitened_fit(
     pos: FloatArray,
     vel: FloatArray | None,
     rho: float,
+    noise: tuple[float, float] | None = None,
 ) -> tuple[FloatArray, FloatArray]:
-    """Least-squares fit of one axis; returns (coef, covariance)."""
-    wp = rho / rough.position_noise**2 if vel is not None else 1.0 / rough.position_noise**2
+    """Least-squares fit of one axis; returns (coef, covariance). ``noise`` (position,
+    velocity) replaces the rough trajectory's own levels."""
+    sp_, sv_ = noise if noise is not None else (rough.position_noise, rough.velocity_noise)
+    wp = rho / sp_**2 if vel is not None else 1.0 / sp_**2
     a = ax.design(rough.time)
     blocks = [np.sqrt(wp) * a]
     rhs = [np.sqrt(wp) * pos]
     if vel is not None:
-        wv = (1.0 - rho) / rough.velocity_noise**2
+        wv = (1.0 - rho) / sv_**2
         blocks.append(np.sqrt(wv) * ax.design(rough.time, 1))
         rhs.append(np.sqrt(wv) * vel)
     m = sp.vstack(blocks).tocsr()
@@ -371,6 +394,32 @@ def _whitened_fit(
     n += 1e-12 * np.max(np.diag(n)) * np.eye(ax.n_coef)
     cov = np.linalg.inv(n)
     return cov @ (m.T @ b), cov
+
+
+def _robust_rms(e: FloatArray) -> float:
+    return 1.4826 * float(np.median(np.abs(e))) if e.size else 0.0
+
+
+def _axis_noise(
+    ax: SplineAxis,
+    rough: RoughTrajectory,
+    pos: FloatArray,
+    vel: FloatArray | None,
+    rho: float,
+) -> tuple[float, float]:
+    """Noise levels of one axis of the rough trajectory at the time scales the knots can
+    follow: the larger of its own white-noise level (second differences) and the robust RMS
+    of the residuals of a fit on the base knots. Errors correlated in time (a random walk,
+    a Gauss-Markov process), a velocity from another source than the position, a time-tag
+    skew between the two: the second differences hardly see them, the fit's residuals do.
+    Only what varies faster than the base knots, or what position and velocity disagree
+    on, is left in those residuals, and no knot should follow it."""
+    coef, _ = _whitened_fit(ax, rough, pos, vel, rho)
+    sp_ = max(rough.position_noise, _robust_rms(pos - ax.evaluate(coef, rough.time)))
+    sv_ = rough.velocity_noise
+    if vel is not None:
+        sv_ = max(sv_, _robust_rms(vel - ax.evaluate(coef, rough.time, 1)))
+    return sp_, sv_
 
 
 def densify(
@@ -384,6 +433,12 @@ def densify(
 ) -> tuple[list[SplineAxis], list[FloatArray], list[FloatArray], int]:
     """Seed 000's densification, per spline-frame axis.
 
+    The fit and its tests use each axis's noise levels at the scale of the base knots
+    (:func:`_axis_noise`), knot intervals never get shorter than two rough-trajectory
+    samples (nor ``min_spacing``), and an axis gains at most as many knots as its base
+    grid holds, worst intervals first: the knots stay bounded whatever the rough
+    trajectory's errors.
+
     Returns the axes, their fitted coefficients and coefficient covariances, and the
     number of rounds run.
     """
@@ -391,21 +446,27 @@ def densify(
     local_p = (rough.position - origin) @ rot
     local_v = None if rough.velocity is None else rough.velocity @ rot
     base = uniform_knots(t0, t1, cfg.base_spacing, segments, cfg.gap_spacing, events, cfg.degree)
+    dt = float(np.median(np.diff(rough.time))) if len(rough) > 1 else 0.0
+    min_spacing = max(cfg.min_spacing, 2.0 * dt)
     event_set = set(np.round(np.asarray(events, dtype=float), 12))
     axes, coefs, covs = [], [], []
     rounds_used = 0
     for a in range(3):
         knots = base.copy()
+        vel = None if local_v is None else local_v[:, a]
+        ax = SplineAxis.from_interior(knots, t0, t1, cfg.degree)
+        noise = _axis_noise(ax, rough, local_p[:, a], vel, cfg.rho)
+        budget = base.size
         for rnd in range(cfg.max_rounds + 1):
             ax = SplineAxis.from_interior(knots, t0, t1, cfg.degree)
-            vel = None if local_v is None else local_v[:, a]
-            coef, cov = _whitened_fit(ax, rough, local_p[:, a], vel, cfg.rho)
-            if rnd == cfg.max_rounds:
+            coef, cov = _whitened_fit(ax, rough, local_p[:, a], vel, cfg.rho, noise)
+            if rnd == cfg.max_rounds or budget <= 0:
                 break
-            bad = _bad_intervals(ax, coef, rough, local_p[:, a], vel, cfg)
-            new = _midpoints(ax, bad, cfg.min_spacing, event_set)
+            bad = _bad_intervals(ax, coef, rough, local_p[:, a], vel, cfg, noise)
+            new = _midpoints(ax, bad, min_spacing, event_set)[:budget]
             if new.size == 0:
                 break
+            budget -= new.size
             knots = np.sort(np.concatenate([knots, new]))
             rounds_used = max(rounds_used, rnd + 1)
         axes.append(ax)
@@ -421,43 +482,52 @@ def _bad_intervals(
     pos: FloatArray,
     vel: FloatArray | None,
     cfg: KnotConfig,
-) -> NDArray[np.bool_]:
-    """Knot intervals whose fit error exceeds the thresholds beyond the noise: the mean
-    squared error of the ``n`` samples in the interval exceeds
-    ``sigma^2 + noise^2 q / n``, ``q`` the chi-square(n) quantile at ``1 - 0.01 / N``
-    (``N`` intervals tested), so noise alone rarely triggers an insertion."""
+    noise: tuple[float, float] | None = None,
+) -> FloatArray:
+    """How far each knot interval's fit error exceeds the thresholds beyond the noise: the
+    largest ratio, over position and velocity, of the mean squared error of the ``n``
+    samples in the interval to ``sigma^2 + noise^2 q / n``, ``q`` the chi-square(n)
+    quantile at ``1 - 0.01 / N`` (``N`` intervals tested), so noise alone rarely makes an
+    interval bad (ratio above 1). ``noise`` (position, velocity) replaces the rough
+    trajectory's own levels."""
     from scipy.stats import chi2
 
+    sp_, sv_ = noise if noise is not None else (rough.position_noise, rough.velocity_noise)
     brk = np.unique(ax.knots)
     idx = np.clip(np.searchsorted(brk, rough.time, side='right') - 1, 0, brk.size - 2)
     n_int = brk.size - 1
     cnt = np.bincount(idx, minlength=n_int).astype(float)
-    bad = np.zeros(n_int, dtype=bool)
-    checks = [(pos - ax.evaluate(coef, rough.time), rough.position_noise, cfg.sigma_position)]
+    ratio = np.zeros(n_int)
+    checks = [(pos - ax.evaluate(coef, rough.time), sp_, cfg.sigma_position)]
     if vel is not None:
-        checks.append(
-            (vel - ax.evaluate(coef, rough.time, 1), rough.velocity_noise, cfg.sigma_velocity)
-        )
-    for e, noise, sigma in checks:
+        checks.append((vel - ax.evaluate(coef, rough.time, 1), sv_, cfg.sigma_velocity))
+    for e, noise_level, sigma in checks:
         mse = np.bincount(idx, weights=e**2, minlength=n_int) / np.maximum(cnt, 1.0)
         n = np.maximum(cnt, 1.0)
-        limit = sigma**2 + noise**2 * chi2.ppf(1.0 - 0.01 / n_int, n) / n
-        bad |= (cnt > 0) & (mse > limit)
-    return bad
+        limit = sigma**2 + noise_level**2 * chi2.ppf(1.0 - 0.01 / n_int, n) / n
+        ratio = np.maximum(ratio, np.where(cnt > 0, mse / limit, 0.0))
+    return ratio
 
 
 def _midpoints(
-    ax: SplineAxis, bad: NDArray[np.bool_], min_spacing: float, events: set[float]
+    ax: SplineAxis, ratio: FloatArray, min_spacing: float, events: set[float]
 ) -> FloatArray:
-    """Midpoints of each bad interval and of its neighbours (clustered insertion)."""
+    """Midpoints of each bad interval (``ratio`` above 1) and of its neighbours (clustered
+    insertion), worst first; an interval shorter than ``2 min_spacing`` is not split."""
     brk = np.unique(ax.knots)
-    pick = bad.copy()
-    pick[1:] |= bad[:-1]
-    pick[:-1] |= bad[1:]
-    lo, hi = brk[:-1][pick], brk[1:][pick]
+    bad = ratio > 1.0
+    score = np.where(bad, ratio, 0.0)
+    # a neighbour of a bad interval is split too, ranked just below the interval itself
+    near = np.zeros_like(score)
+    near[1:] = np.maximum(near[1:], score[:-1])
+    near[:-1] = np.maximum(near[:-1], score[1:])
+    score = np.maximum(score, 0.999 * near)
+    pick = score > 0.0
+    lo, hi, sc = brk[:-1][pick], brk[1:][pick], score[pick]
     ok = (hi - lo) >= 2.0 * min_spacing
+    lo, hi, sc = lo[ok], hi[ok], sc[ok]
     del events
-    return 0.5 * (lo[ok] + hi[ok])
+    return (0.5 * (lo + hi))[np.argsort(-sc, kind='stable')]
 
 
 def select_knots(
@@ -600,8 +670,10 @@ class KnotSelection:
     method: str
     info: dict[str, str] = field(default_factory=dict)
     refined: int = 0
-    rough_source: str = ''
     """Knots added afterwards by the estimator's measurement-driven test."""
+    rough_source: str = ''
+    pruned: int = 0
+    """Knots dropped afterwards: their jump is not significant in the first solution."""
 
 
 def choose_knots(
@@ -614,6 +686,7 @@ def choose_knots(
     frame: tuple[FloatArray, FloatArray] | None = None,
     baseline_spacing: float = 3.0,
     events: Sequence[float] | None = None,
+    context: tuple[RoughTrajectory, float, float] | None = None,
 ) -> KnotSelection:
     """Knots of the trajectory spline over [t0, t1].
 
@@ -622,11 +695,19 @@ def choose_knots(
     ``method``: ``sparse`` (densify + l1 selection, the seed's method), ``dense``
     (densified grid, no selection: baseline (c)), ``dynamics`` (baseline (b): events +
     uniform ``baseline_spacing``).
+
+    ``context`` ``(rough, a0, a1)``: the rough trajectory over a span [a0, a1] around the
+    window (:func:`selection_span`). The ``sparse`` and ``dense`` knots are chosen there and
+    the window keeps those inside it (not closer than a quarter of the finer spacing to its
+    ends): the selection then sees the same data whether a window edge moves by 1e-6 s or
+    not, and neighbouring windows agree where they overlap.
     """
     start = _time.perf_counter()
-    frame = frame or spline_frame(rough)
+    src, a0, a1 = context if context is not None else (rough, t0, t1)
+    frame = frame or spline_frame(src)
     if events is None:
-        events = detect_events(rough, cfg) if cfg.events else []
+        events = detect_events(src, cfg) if cfg.events else []
+    wide_events = [e for e in events if a0 + cfg.base_spacing / 2 < e < a1 - cfg.base_spacing / 2]
     events = [e for e in events if t0 + cfg.base_spacing / 2 < e < t1 - cfg.base_spacing / 2]
     solve = 0.0
     info: dict[str, str] = {}
@@ -641,20 +722,31 @@ def choose_knots(
         dense = tuple(a.interior.size for a in axes)
         selected, rounds = dense, 0
     elif method in ('sparse', 'dense'):
-        axes, coefs, covs, rounds = densify(rough, frame, t0, t1, segments, events, cfg)
+        axes, coefs, covs, rounds = densify(src, frame, a0, a1, segments, wide_events, cfg)
         dense = tuple(a.interior.size for a in axes)
         if method == 'sparse' and cfg.sparse:
             red = []
-            floors = rough.axis_sigma(frame[1])
+            floors = src.axis_sigma(frame[1])
             for a in range(3):
                 fl = None if floors is None else (floors[0][:, a], floors[1][:, a])
                 ax, _, inf = select_knots(
-                    axes[a], coefs[a], covs[a], rough.time, cfg, events, floor=fl
+                    axes[a], coefs[a], covs[a], src.time, cfg, wide_events, floor=fl
                 )
                 red.append(ax)
                 solve += float(inf['solve_time'])
                 info = {'solver': str(inf['solver']), 'status': str(inf['status'])}
             axes = red
+        if context is not None:
+            q = 0.25 * min(cfg.base_spacing, cfg.gap_spacing)
+            axes = [
+                SplineAxis.from_interior(
+                    ax.interior[(ax.interior > t0 + q) & (ax.interior < t1 - q)],
+                    t0,
+                    t1,
+                    cfg.degree,
+                )
+                for ax in axes
+            ]
         selected = tuple(a.interior.size for a in axes)
     else:
         raise ValueError(
@@ -674,6 +766,17 @@ def choose_knots(
         method,
         info,
     )
+
+
+def selection_span(t0: float, t1: float, cfg: KnotConfig) -> tuple[float, float]:
+    """The span around the window [t0, t1] whose rough trajectory the knots are chosen on
+    (:func:`choose_knots`' ``context``): out to the multiples of ``base_spacing`` beyond the
+    window and one more spacing, so that moving an edge by much less than a spacing changes
+    nothing."""
+    b = cfg.base_spacing
+    # rounded from half a spacing away: windows start and end on round times, and a span
+    # rounded at them would flip with the edge (ceil(80.000001) = 81)
+    return (math.floor(t0 / b - 0.5) - 1) * b, (math.ceil(t1 / b + 0.5) + 1) * b
 
 
 def _fit_rough(traj: SplineTrajectory, rough: RoughTrajectory, rho: float) -> FloatArray:
