@@ -46,6 +46,7 @@ __all__ = ['ResultsJournal']
 _WINDOW = 'window'
 _MARK = 'published'
 _SEEN = 'seen'
+_READERS = 'readers'
 
 
 class ResultsJournal:
@@ -80,6 +81,20 @@ class ResultsJournal:
             min_value=0.0625,
             max_value=1e6,
         )
+        self.reader_wait = declare(
+            node,
+            'restart_reader_wait',
+            10.0,
+            'After a restart on the journal, wall seconds at most that what the node '
+            'publishes waits for as many readers of trajectory/states as it had before (a '
+            'volatile reader that has not matched the new process yet would miss it).',
+            read_only=True,
+            min_value=0.0,
+            max_value=600.0,
+        )
+        self.readers = 0
+        """Readers of ``trajectory/states`` when the last publication was marked (from
+        the journal at start)."""
         self.journal: Journal | None = None
         self.marks: dict[int, int] = {}
         """Per target, the stamp [ns] up to which its states were published."""
@@ -104,6 +119,8 @@ class ResultsJournal:
                 self.marks[int(rec.key)] = int(rec.data)
             elif rec.kind == _SEEN:
                 self.seen = [(int(a), int(b)) for a, b in json.loads(rec.data)]
+            elif rec.kind == _READERS:
+                self.readers = int(rec.data)
 
     @property
     def enabled(self) -> bool:
@@ -145,14 +162,16 @@ class ResultsJournal:
         except OSError:
             self.write_errors += 1
 
-    def published(self, until_ns: dict[int, int], acked: Callable[[], bool]) -> None:
-        """States up to these stamps [ns] per target were handed to DDS: marked once
-        ``acked()`` says every reader has them (:meth:`commit`)."""
+    def published(
+        self, until_ns: dict[int, int], acked: Callable[[], bool], readers: int = 0
+    ) -> None:
+        """States up to these stamps [ns] per target were handed to DDS, which ``readers``
+        read: marked once ``acked()`` says every reader has them (:meth:`commit`)."""
         for tid, ns in until_ns.items():
             self._pending[tid] = max(ns, self._pending.get(tid, -1))
-        self.commit(acked)
+        self.commit(acked, readers)
 
-    def commit(self, acked: Callable[[], bool]) -> None:
+    def commit(self, acked: Callable[[], bool], readers: int = 0) -> None:
         """Mark what :meth:`published` staged if ``acked()`` (call again until it is), and
         let go of the windows wholly published (all but the last). Until then a restart
         publishes those states again: a state may come twice, never not at all (a writer's
@@ -161,6 +180,10 @@ class ResultsJournal:
             return
         pending, self._pending = self._pending, {}
         try:
+            if readers != self.readers:
+                self.readers = readers
+                rec = JournalRecord(_READERS, '', -math.inf, str(readers).encode(), sticky=True)
+                self.journal.append(rec)
             for tid, ns in sorted(pending.items()):
                 if ns > self.marks.get(tid, -1):
                     self.marks[tid] = ns

@@ -258,8 +258,10 @@ class ResultsNode(Node):
         self.create_service(Trigger, '~/flush', self._on_flush)
         self.journal = ResultsJournal(self)
         self.create_timer(0.5, self._tick)
+        self.held_final: list[tuple[list[FinalStates], TimeBase]] | None = None
+        self.hold_until = 0.0
         if self.journal.enabled:  # marks what readers acknowledged (a restart resends the rest)
-            self.create_timer(0.05, lambda: self.journal.commit(self._states_acked))
+            self.create_timer(0.05, self._journal_tick)
         self.create_timer(1.0, self._publish_diagnostics)
         where = "the windows' world frame"
         if self.launch is not None:
@@ -279,6 +281,11 @@ class ResultsNode(Node):
             return
         if j.problem:
             self.get_logger().warning(f'journal {j.journal.path}: {j.problem}')
+        if j.readers and j.reader_wait > 0.0:
+            # what the new process publishes waits for the readers of the old one: a
+            # volatile reader that has not matched it yet would never get it
+            self.held_final = []
+            self.hold_until = time.monotonic() + j.reader_wait
         self.seen.extend(j.seen)
         n = 0
         for msg in j.windows():
@@ -532,6 +539,9 @@ class ResultsNode(Node):
 
     # -- output --------------------------------------------------------------------
     def _publish(self, final: list[FinalStates], tb: TimeBase) -> int:
+        if self.held_final is not None:  # restarted: the readers are not all back yet
+            self.held_final.append((final, tb))
+            return sum(len(fs) for fs in final)
         n = 0
         until: dict[int, int] = {}
         for fs in final:
@@ -573,8 +583,27 @@ class ResultsNode(Node):
             if tid == self._path_target():
                 self.path_pub.publish(self._path_msg(tid))
         self.counts['states_published'] += n
-        self.journal.published(until, self._states_acked)
+        self.journal.published(until, self._states_acked, self.states_pub.get_subscription_count())
         return n
+
+    def _journal_tick(self) -> None:
+        self._release_held()
+        self.journal.commit(self._states_acked, self.states_pub.get_subscription_count())
+
+    def _release_held(self) -> None:
+        """After a restart: publish what was held once the readers of the last process
+        are back, or ``restart_reader_wait`` seconds have passed."""
+        if self.held_final is None:
+            return
+        n = self.states_pub.get_subscription_count()
+        if n < self.journal.readers and time.monotonic() < self.hold_until:
+            return
+        held, self.held_final = self.held_final, None
+        count = sum(self._publish(final, tb) for final, tb in held)
+        self.get_logger().info(
+            f'{n} of the {self.journal.readers} reader(s) of trajectory/states before the '
+            f'restart matched: published the {count} states held for them'
+        )
 
     def _states_acked(self) -> bool:
         """Whether every reader of the state topics has acknowledged what went out."""
