@@ -476,13 +476,18 @@ def safer_settings(
     cfg: EstimatorConfig, previous: Mapping[int, TargetSolution] | None
 ) -> list[tuple[str, EstimatorConfig, Mapping[int, TargetSolution] | None]]:
     """The retries of a window that was not a success, safest last: a start from the rough
-    trajectory alone with fewer knots (events and a knot every ``baseline_spacing`` s, no
-    knot test), then the same without telemetry fused (telemetry whose errors its model
+    trajectory alone with fewer knots (events and a knot every ``baseline_spacing`` s; the
+    measurement-driven knot test then adds those the residuals ask for, a manoeuvre that 3 s
+    knots cannot follow), then the same without telemetry fused (telemetry whose errors its model
     does not describe pulls the fit away from the stations)."""
     del previous  # the retries start from the rough trajectory, not the previous window
-    fewer = replace(cfg, knot_method='dynamics', refine_rounds=0)
+    fewer = replace(cfg, knot_method='dynamics')
     out: list[tuple[str, EstimatorConfig, Mapping[int, TargetSolution] | None]] = [
-        (f'fewer knots (every {cfg.baseline_spacing:g} s and events)', fewer, None)
+        (
+            f'fewer knots (every {cfg.baseline_spacing:g} s and events, then the knot test)',
+            fewer,
+            None,
+        )
     ]
     if cfg.use_telemetry:
         out.append(('fewer knots, telemetry not fused', replace(fewer, use_telemetry=False), None))

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -74,27 +74,18 @@ determine to better than 1e-10 of the best-determined one stay where they are in
 running away (Levenberg-Marquardt with a fixed, tiny lambda)."""
 
 
-def _normal_solve(
-    n: FloatArray, g: FloatArray, lam: float = 0.0
-) -> tuple[FloatArray, float, bool]:
+def _normal_solve(n: FloatArray, g: FloatArray, lam: float = 0.0) -> tuple[FloatArray, bool]:
     """Step ``(N + lam D) step = g`` on the Jacobi-scaled normal matrix (``D`` its
-    diagonal; ``lam = 0`` is the Gauss-Newton step with :data:`DAMPING`), the condition
-    number of the scaled matrix, and whether Cholesky succeeded."""
+    diagonal; ``lam = 0`` is the Gauss-Newton step with :data:`DAMPING`), and whether
+    Cholesky succeeded."""
     d = np.sqrt(np.maximum(np.diag(n), 1e-300))
     ns = n / d[:, None] / d[None, :]
     ns[np.diag_indices_from(ns)] += DAMPING + lam
     try:
         cf = sla.cho_factor(ns, check_finite=False)
-        step = sla.cho_solve(cf, g / d, check_finite=False) / d
-        ok = True
+        return sla.cho_solve(cf, g / d, check_finite=False) / d, True
     except np.linalg.LinAlgError:
-        step = np.linalg.lstsq(ns, g / d, rcond=1e-12)[0] / d
-        ok = False
-    if lam > 0.0:
-        return step, math.nan, ok
-    ev = np.linalg.eigvalsh(ns)
-    cond = float(ev[-1] / ev[0]) if ev[0] > 0 else math.inf
-    return step, cond, ok
+        return np.linalg.lstsq(ns, g / d, rcond=1e-12)[0] / d, False
 
 
 LM_LAMBDAS = tuple(10.0**k for k in range(-6, 9))
@@ -113,18 +104,55 @@ def _free(prob: Problem, beta: FloatArray, step: FloatArray) -> NDArray[np.bool_
     return free
 
 
+def _gn_step(
+    prob: Problem, beta: FloatArray, n: FloatArray, g: FloatArray
+) -> tuple[FloatArray, float]:
+    """The Gauss-Newton step at ``beta`` and its :func:`decrement`."""
+    step, _ = _normal_solve(n, g)
+    free = _free(prob, beta, step)
+    if free.all():
+        return step, max(float(g @ step), 0.0)
+    inner = np.zeros_like(step)
+    inner[free], _ = _normal_solve(n[np.ix_(free, free)], g[free])
+    return step, max(float(g @ inner), 0.0)
+
+
 def decrement(prob: Problem, beta: FloatArray, n: FloatArray, g: FloatArray) -> float:
     """Predicted decrease of the cost by the full Gauss-Newton step at ``beta``:
     ``g^T N^-1 g`` over the parameters free to move (a bias held at its bound by the step
     is left out). The step moves the solution by about ``sqrt`` of it in units of its own
     standard deviation, so it tells a solution that cannot improve from one that merely
     found no step that lowers the cost."""
-    step, _, _ = _normal_solve(n, g)
-    free = _free(prob, beta, step)
-    if not free.all():
-        step = np.zeros_like(step)
-        step[free], _, _ = _normal_solve(n[np.ix_(free, free)], g[free])
-    return max(float(g @ step), 0.0)
+    return _gn_step(prob, beta, n, g)[1]
+
+
+def _damped_step(
+    prob: Problem,
+    beta: FloatArray,
+    n: FloatArray,
+    g: FloatArray,
+    gn_step: FloatArray,
+    lam: float,
+    cost: float,
+    cost_of: Callable[[FloatArray], float],
+) -> tuple[FloatArray | None, float, float, int]:
+    """One Levenberg-Marquardt step (Marquardt's schedule): from damping ``lam`` (0 = the
+    Gauss-Newton step ``gn_step``), damping ten times more while the cost rises, up to the
+    last of :data:`LM_LAMBDAS`. Returns the accepted point (None if no step lowers the
+    cost), its cost, the damping to start the next iteration with (a tenth of the one that
+    worked; 0 below the first of :data:`LM_LAMBDAS`) and the damped steps tried."""
+    tried = 0
+    while True:
+        step = gn_step if lam == 0.0 else _normal_solve(n, g, lam)[0]
+        trial = prob.project(beta + step)
+        c_new = cost_of(trial)
+        if c_new <= cost:
+            nxt = lam / 10.0 if lam / 10.0 >= LM_LAMBDAS[0] else 0.0
+            return trial, c_new, nxt, tried
+        lam = LM_LAMBDAS[0] if lam == 0.0 else lam * 10.0
+        if lam > LM_LAMBDAS[-1]:
+            return None, cost, 0.0, tried
+        tried += 1
 
 
 def gauss_newton(prob: Problem, beta: FloatArray, cfg: EstimatorConfig) -> GnOutcome:
@@ -132,9 +160,10 @@ def gauss_newton(prob: Problem, beta: FloatArray, cfg: EstimatorConfig) -> GnOut
     raises the cost.
 
     Each iteration takes the Gauss-Newton step at the current point; if the cost rises it
-    tries the damped steps of :data:`LM_LAMBDAS` in turn (a trust region that shrinks
-    toward a short gradient step, better than halving a step that points the wrong way
-    in an ill-conditioned valley). It has *converged* when the Gauss-Newton step from the
+    damps the step ten times more until the cost falls (:func:`_damped_step`: a trust
+    region that shrinks toward a short gradient step, better than halving a step that
+    points the wrong way in an ill-conditioned valley), and starts the next iteration
+    from a tenth of that damping. It has *converged* when the Gauss-Newton step from the
     current point would lower the cost by at most ``cfg.convergence_decrement``
     (:func:`decrement`: the solution would move by less than its square root of a
     standard deviation), checked at every point, never inferred from a small step. When
@@ -144,23 +173,17 @@ def gauss_newton(prob: Problem, beta: FloatArray, cfg: EstimatorConfig) -> GnOut
     r, jac, _ = prob.evaluate(beta, True)
     cost = float(r @ r)
     tried = 0
+    lam = 0.0
     for it in range(1, cfg.max_iterations + 1):
         assert jac is not None
         n = (jac.T @ jac).toarray()
         g = jac.T @ r
-        dec = decrement(prob, beta, n, g)
+        step, dec = _gn_step(prob, beta, n, g)
         if dec <= cfg.convergence_decrement:
             return GnOutcome(beta, cost, it - 1, tried, True, 'converged')
-        accepted = False
-        for lam in (0.0, *LM_LAMBDAS):
-            tried += lam > 0.0
-            step, _, _ = _normal_solve(n, g, lam)
-            trial = prob.project(beta + step)
-            c_new = prob.cost(trial)
-            if c_new <= cost:
-                accepted = True
-                break
-        if not accepted:
+        trial, _, lam, k = _damped_step(prob, beta, n, g, step, lam, cost, prob.cost)
+        tried += k
+        if trial is None:
             return GnOutcome(
                 beta,
                 cost,
@@ -251,16 +274,41 @@ def gate_residuals(prob: Problem, beta: FloatArray, limits: Mapping[str, float])
     return changed
 
 
+TELEMETRY_MAX_LAG1 = 0.99
+"""Largest lag-1 autocorrelation taken from telemetry residuals (inflation at most 14x)."""
+
+
+def _lag1(e: FloatArray) -> float:
+    """Lag-1 autocorrelation of the rows of ``e`` (m, 3), time-ordered, pooled over the
+    columns, clipped to [0, :data:`TELEMETRY_MAX_LAG1`]."""
+    if e.shape[0] < 3:
+        return 0.0
+    c = e - e.mean(axis=0)
+    den = float(np.sum(c * c))
+    if den <= 0.0:
+        return 0.0
+    return min(max(float(np.sum(c[1:] * c[:-1])) / den, 0.0), TELEMETRY_MAX_LAG1)
+
+
 def _reestimate_telemetry_noise(prob: Problem, beta: FloatArray) -> bool:
+    """The telemetry's position and velocity noise levels from its residuals: their RMS,
+    inflated by ``sqrt((1 + rho) / (1 - rho))`` with ``rho`` their lag-1 autocorrelation
+    (the effective sample size of a first-order autoregressive error). Residuals that run
+    in one direction for many samples (a random walk, jumps, a time-tag skew, a velocity
+    from another source: errors the error spline does not follow) are that many fewer
+    independent samples, and are weighed so; white residuals keep their RMS."""
     changed = False
     for tb in prob.telemetry:
         dp, dv = prob.telemetry_residuals(tb, beta)
         use_p, use_v = prob.telemetry_use(tb)
-        ep, ev = dp[use_p], dv[use_v]
-        new = [
-            max(float(np.sqrt(np.mean(ep**2))), 1e-3) if ep.size else tb.noise[0],
-            max(float(np.sqrt(np.mean(ev**2))), 1e-5) if ev.size else tb.noise[1],
-        ]
+        order = np.argsort(tb.time, kind='stable')
+        ep, ev = dp[order][use_p[order]], dv[order][use_v[order]]
+        new = list(tb.noise)
+        for k, (e, floor) in enumerate(((ep, 1e-3), (ev, 1e-5))):
+            if e.size:
+                rho = _lag1(e)
+                rms = float(np.sqrt(np.mean(e**2)))
+                new[k] = max(rms * math.sqrt((1.0 + rho) / (1.0 - rho)), floor)
         if any(abs(a - b) > 0.05 * b for a, b in zip(new, tb.noise, strict=True)):
             changed = True
         tb.noise = new
@@ -397,29 +445,30 @@ def robust_warm_up(
     scales = _kind_scales(r, kinds)
     w, cost, full = _robust_terms(r, kinds, scales, loss, c)
     halvings = iterations = 0
+    lam = 0.0
     message, converged = 'iteration limit', False
+
+    def robust_cost(b: FloatArray) -> float:
+        return _robust_terms(prob.evaluate(b, False)[0], kinds, scales, loss, c)[1]
+
     while iterations < cfg.max_iterations:
         assert jac is not None
         plain = bool(np.all(w == 1.0))
         if plain:
             n, g = (jac.T @ jac).toarray(), jac.T @ r
-            if decrement(prob, beta, n, g) <= cfg.convergence_decrement:
+            step, dec = _gn_step(prob, beta, n, g)
+            if dec <= cfg.convergence_decrement:
                 message, converged = 'converged', True  # the plain solve's own test
                 break
         else:
             jw = sp.diags(np.sqrt(w)) @ jac
             n, g = (jw.T @ jw).toarray(), jac.T @ (w * r)
+            step = _normal_solve(n, g)[0]
         iterations += 1
-        accepted = False
-        for lam in (0.0, *LM_LAMBDAS):  # the plain solve's steps (gauss_newton)
-            halvings += lam > 0.0
-            step, _, _ = _normal_solve(n, g, lam)
-            trial = prob.project(beta + step)
-            c_new = _robust_terms(prob.evaluate(trial, False)[0], kinds, scales, loss, c)[1]
-            if c_new <= cost:
-                accepted = True
-                break
-        if not accepted:
+        # the plain solve's steps (gauss_newton), on the robust cost
+        trial, c_new, lam, k = _damped_step(prob, beta, n, g, step, lam, cost, robust_cost)
+        halvings += k
+        if trial is None:
             message = 'stalled: no step lowers the robust cost'
             converged = not plain  # a plain stall is judged by gauss_newton's test
             break

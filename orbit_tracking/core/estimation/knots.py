@@ -635,6 +635,24 @@ def select_knots(
     return reduced, jumps, {'solver': solver, 'status': prob.status, 'solve_time': elapsed}
 
 
+def _unsampled_knots(ax: SplineAxis, times: FloatArray, gap: float, spacing: float) -> list[float]:
+    """Interior knots of ``ax`` on the multiples of ``spacing`` (the base grid, not the finer
+    grid of an incomplete segment, which the measurements there could not determine) inside
+    stretches longer than ``gap`` without a sample."""
+    t = np.sort(np.asarray(times, dtype=np.float64))
+    if t.size == 0:
+        return []
+    lo = np.concatenate([[ax.t0], t])
+    hi = np.concatenate([t, [ax.t1]])
+    holes = [(a, b) for a, b in zip(lo, hi, strict=True) if b - a > gap]
+    on_grid = np.abs(ax.interior / spacing - np.round(ax.interior / spacing)) < 1e-6
+    return [
+        float(k)
+        for k, g in zip(ax.interior, on_grid, strict=True)
+        if g and any(a < k < b for a, b in holes)
+    ]
+
+
 def _constraint_times(ax: SplineAxis, t: FloatArray, per_interval: int = 4) -> FloatArray:
     """Thin the epochs where the tolerances are enforced to about ``per_interval`` per
     knot interval (all of them in short intervals): the LP shrinks, the fit does not."""
@@ -727,10 +745,16 @@ def choose_knots(
         if method == 'sparse' and cfg.sparse:
             red = []
             floors = src.axis_sigma(frame[1])
+            # where the rough trajectory has no samples (a telemetry outage) nothing says a
+            # knot is not needed: those stay, and the measurements decide the shape there
+            kept = [
+                *wide_events,
+                *_unsampled_knots(axes[0], src.time, 2.0 * cfg.base_spacing, cfg.base_spacing),
+            ]
             for a in range(3):
                 fl = None if floors is None else (floors[0][:, a], floors[1][:, a])
                 ax, _, inf = select_knots(
-                    axes[a], coefs[a], covs[a], src.time, cfg, wide_events, floor=fl
+                    axes[a], coefs[a], covs[a], src.time, cfg, kept, floor=fl
                 )
                 red.append(ax)
                 solve += float(inf['solve_time'])
