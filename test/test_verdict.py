@@ -161,3 +161,15 @@ def test_a_failed_window_neither_starts_the_next_nor_enters_the_trajectory():
     tt, _, _ = stitch([failed, *ests[1:]], t)
     assert tt.size and tt[0] >= ests[1].t0 - 1e-9
     assert stitch([failed], t)[0].size == 0
+
+
+def test_a_solve_that_ends_near_its_optimum_counts_with_a_wider_covariance():
+    """An unfinished solve whose Gauss-Newton step still promises d (here 2.25) is within
+    about sqrt(d) sigma of its optimum: it counts, its covariance scaled by 1 + d; one that
+    promises more than max_unconverged_decrement does not."""
+    near = judge(False, 1.0, 10_000, 1.5, decrement=2.25, max_decrement=4.0)
+    assert near.success and near.covariance_scale == pytest.approx(3.25)
+    assert not judge(False, 1.0, 10_000, 1.5, decrement=9.0, max_decrement=4.0).success
+    assert not judge(False, 1.0, 10_000, 1.5, decrement=0.5, max_decrement=0.0).success
+    both = judge(False, 1.3, 10_000, 1.5, decrement=1.0, max_decrement=4.0)
+    assert both.success and both.covariance_scale == pytest.approx(1.3 * 2.0)

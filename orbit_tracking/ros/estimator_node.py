@@ -250,6 +250,28 @@ class EstimatorNode(StationInputs):
                 min_value=0.0,
                 max_value=1e6,
             ),
+            max_chi2_dof=declare(
+                self,
+                'max_chi2_dof',
+                1.5,
+                'A window is a success only if the chi2 per degree of freedom of its fit is at '
+                'most this (or 1 + 5 sqrt(2/dof) for few degrees of freedom); otherwise it is '
+                'retried with safer settings and, if still inconsistent, withheld.',
+                read_only=True,
+                min_value=1.0,
+                max_value=1e6,
+            ),
+            max_unconverged_decrement=declare(
+                self,
+                'max_unconverged_decrement',
+                4.0,
+                'A solve that stopped before converging is still taken if its Gauss-Newton '
+                'step promises at most this much lower chi2; its covariance is then scaled by '
+                '1 + that. 0 = only converged solves.',
+                read_only=True,
+                min_value=0.0,
+                max_value=100.0,
+            ),
             segments=segments,
         )
         # resolved per window against the stations in it (what 'auto' needs)

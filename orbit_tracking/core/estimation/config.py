@@ -51,6 +51,11 @@ class EstimatorConfig:
         A solve has converged when the Gauss-Newton step from its solution would lower the
         cost (chi-square) by at most this: the step would move it by less than the square
         root of this in units of its own standard deviations (0.01 by default).
+    max_unconverged_decrement : float
+        A solve that ended without converging, its Gauss-Newton step still promising at
+        most this much lower chi2, is taken with its covariance scaled by ``1 +`` that
+        (within about its square root of standard deviations of the optimum); 0 = never
+        (:mod:`~orbit_tracking.core.estimation.verdict`).
     tolerance, max_halvings :
         The robust warm-up stops when its relative cost change falls below ``tolerance``;
         its step is halved at most ``max_halvings`` times.
@@ -136,6 +141,7 @@ class EstimatorConfig:
     polynomial_degree: int = 6
     max_iterations: int = 20
     convergence_decrement: float = 1e-4
+    max_unconverged_decrement: float = 4.0
     tolerance: float = 1e-9
     max_halvings: int = 12
     gate_sigma: float = 5.0
@@ -172,6 +178,10 @@ class EstimatorConfig:
             raise ValueError(f'prune_z must be >= 0; got {self.prune_z}')
         if not self.max_chi2_dof >= 1.0:
             raise ValueError(f'max_chi2_dof must be >= 1; got {self.max_chi2_dof}')
+        if not self.max_unconverged_decrement >= 0.0:
+            raise ValueError(
+                f'max_unconverged_decrement must be >= 0; got {self.max_unconverged_decrement}'
+            )
         if not self.convergence_decrement > 0.0:
             raise ValueError(
                 f'convergence_decrement must be > 0; got {self.convergence_decrement}'

@@ -329,7 +329,15 @@ def _estimate_once(
     chi2_dof = out.cost / dof
     finite = bool(np.all(np.isfinite(out.beta)) and np.all(np.isfinite(cov)))
     verdict = judge(
-        out.converged, chi2_dof, dof, cfg.max_chi2_dof, singular, prob.gate_refused, finite
+        out.converged,
+        chi2_dof,
+        dof,
+        cfg.max_chi2_dof,
+        singular,
+        prob.gate_refused,
+        finite,
+        out.decrement,
+        cfg.max_unconverged_decrement,
     )
     cov = cov * verdict.covariance_scale
     targets = {}
@@ -370,8 +378,15 @@ def _estimate_once(
             f'; the residual gate would reject {prob.gate_refused:.0%} of the rows, so the '
             'model does not fit the data (unmodelled systematic errors?): nothing gated'
         )
-    if verdict.covariance_scale != 1.0:
-        msg += f'; covariance scaled by the misfit ({verdict.covariance_scale:.3g})'
+    near = 1.0
+    if not out.converged and verdict.success:
+        near = 1.0 + out.decrement
+        msg += (
+            f'; taken within {math.sqrt(out.decrement):.2g} sigma of its optimum, its '
+            f'covariance scaled by {near:.3g}'
+        )
+    if verdict.covariance_scale != near:
+        msg += f'; covariance scaled by the misfit ({verdict.covariance_scale / near:.3g})'
     if factors:
         msg += '; sigmas used larger than declared: ' + ', '.join(
             f'{st} {f} x{k:.2f}' for (st, f), k in sorted(factors.items())

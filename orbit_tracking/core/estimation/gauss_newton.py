@@ -66,6 +66,8 @@ class GnOutcome:
     halvings: int
     converged: bool
     message: str
+    decrement: float = 0.0
+    """What the Gauss-Newton step from ``beta`` would still lower the cost by."""
 
 
 DAMPING = 1e-10
@@ -180,7 +182,7 @@ def gauss_newton(prob: Problem, beta: FloatArray, cfg: EstimatorConfig) -> GnOut
         g = jac.T @ r
         step, dec = _gn_step(prob, beta, n, g)
         if dec <= cfg.convergence_decrement:
-            return GnOutcome(beta, cost, it - 1, tried, True, 'converged')
+            return GnOutcome(beta, cost, it - 1, tried, True, 'converged', dec)
         trial, _, lam, k = _damped_step(prob, beta, n, g, step, lam, cost, prob.cost)
         tried += k
         if trial is None:
@@ -192,6 +194,7 @@ def gauss_newton(prob: Problem, beta: FloatArray, cfg: EstimatorConfig) -> GnOut
                 False,
                 f'stalled: no step lowers the cost, the Gauss-Newton step would lower it by '
                 f'{dec:.3g}',
+                dec,
             )
         beta = trial
         r, jac, _ = prob.evaluate(beta, True)
@@ -200,7 +203,7 @@ def gauss_newton(prob: Problem, beta: FloatArray, cfg: EstimatorConfig) -> GnOut
     n = (jac.T @ jac).toarray()
     dec = decrement(prob, beta, n, jac.T @ r)
     if dec <= cfg.convergence_decrement:
-        return GnOutcome(beta, cost, cfg.max_iterations, tried, True, 'converged')
+        return GnOutcome(beta, cost, cfg.max_iterations, tried, True, 'converged', dec)
     return GnOutcome(
         beta,
         cost,
@@ -208,6 +211,7 @@ def gauss_newton(prob: Problem, beta: FloatArray, cfg: EstimatorConfig) -> GnOut
         tried,
         False,
         f'iteration limit: the Gauss-Newton step would still lower the cost by {dec:.3g}',
+        dec,
     )
 
 
@@ -480,11 +484,13 @@ def robust_warm_up(
         if not plain and change <= cfg.tolerance * max(full, 1.0):
             message, converged = 'converged', True
             break
-    if not converged and message == 'iteration limit' and np.all(w == 1.0):
+    dec = math.nan
+    if np.all(w == 1.0):
         assert jac is not None
-        n = (jac.T @ jac).toarray()
-        converged = decrement(prob, beta, n, jac.T @ r) <= cfg.convergence_decrement
-    out = GnOutcome(beta, float(r @ r), iterations, halvings, converged, message)
+        dec = decrement(prob, beta, (jac.T @ jac).toarray(), jac.T @ r)
+        if not converged and message == 'iteration limit':
+            converged = dec <= cfg.convergence_decrement
+    out = GnOutcome(beta, float(r @ r), iterations, halvings, converged, message, dec)
     return out, dict(zip(ROBUST_KINDS, scales.tolist(), strict=True)), int(np.sum(w < 1.0))
 
 

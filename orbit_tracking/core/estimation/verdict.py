@@ -5,7 +5,13 @@ A window is a **success** when
 
 * its solve **converged**: the Gauss-Newton step from the solution would lower the cost by
   at most ``convergence_decrement`` (:func:`~orbit_tracking.core.estimation.gauss_newton.
-  decrement`), a test a stalled step cannot pass;
+  decrement`), a test a stalled step cannot pass. A solve that ended (iteration limit, or
+  no step lowering the cost) with that step still promising ``d`` up to
+  ``max_unconverged_decrement`` lies within about ``sqrt(d)`` standard deviations of the
+  optimum along the worst direction (typically one the data hardly determine, at a window
+  end inside an incomplete segment, where the quadratic model overshoots and the solve
+  crawls): it counts, with its covariance scaled by ``1 + d`` so that the published sigma
+  covers that distance;
 * its fit is **consistent** with the measurement model: the chi-square per degree of
   freedom of the rows kept is at most :func:`chi2_limit` (``max_chi2_dof``, or the
   ``1 + 5 sqrt(2 / dof)`` a consistent fit stays under when it has few degrees of freedom);
@@ -60,11 +66,17 @@ def judge(
     singular: bool = False,
     gate_refused: float = 0.0,
     finite: bool = True,
+    decrement: float = math.inf,
+    max_decrement: float = 0.0,
 ) -> Verdict:
     """The verdict on one window (see the module docstring)."""
     reasons = []
+    near = 1.0  # a solve that ended near its optimum: its covariance covers the distance
     if not converged:
-        reasons.append('not converged')
+        if math.isfinite(decrement) and decrement <= max_decrement:
+            near = 1.0 + decrement
+        else:
+            reasons.append('not converged')
     limit = chi2_limit(dof, max_chi2_dof)
     if not chi2_dof <= limit:
         reasons.append(f'chi2/dof {chi2_dof:.3g} above {limit:.3g}: the fit is inconsistent')
@@ -76,4 +88,4 @@ def judge(
         reasons.append('states or covariance not finite')
     significant = 1.0 + 3.0 * math.sqrt(2.0 / max(dof, 1))
     scale = chi2_dof if math.isfinite(chi2_dof) and chi2_dof > significant else 1.0
-    return Verdict(not reasons, tuple(reasons), scale)
+    return Verdict(not reasons, tuple(reasons), scale * near)
