@@ -206,19 +206,26 @@ def test_problem_jacobian_matches_central_differences_of_the_residuals(small_pro
     np.testing.assert_allclose(-fd, jac, rtol=0.0, atol=1e-5 * np.max(np.abs(jac)))
 
 
-def test_every_row_of_a_fused_problem_matches_central_differences_and_biases_too():
+@pytest.mark.parametrize('velocity_error', ['derivative', 'separate'])
+def test_every_row_of_a_fused_problem_matches_central_differences_and_biases_too(
+    velocity_error,
+):
     """The whole residual vector with telemetry fused (position, velocity, the prior of its
-    error spline) and a declared range bias: minus the model Jacobian equals central
-    differences of the residuals, row by row. (The telemetry prior's sign was once wrong:
-    J^T J does not see a sign, so the covariance was right while Gauss-Newton stalled.)"""
+    error spline, and a velocity error of its own) and a declared range bias: minus the
+    model Jacobian equals central differences of the residuals, row by row. (The telemetry
+    prior's sign was once wrong: J^T J does not see a sign, so the covariance was right
+    while Gauss-Newton stalled.)"""
     from orbit_tracking.core.models.systematic import BiasParameter
 
     rng = np.random.default_rng(9)
     traj, coef = _truth_spline([5.0, 10.0, 15.0])
     obs = _observations(traj, coef, rng, noise=True)
-    cfg = EstimatorConfig(biases=(BiasParameter('cw_b', 'range', 2.0),))
+    cfg = EstimatorConfig(
+        biases=(BiasParameter('cw_b', 'range', 2.0),), telemetry_velocity_error=velocity_error
+    )
     prob, _, beta0 = _problem_on(obs, traj.axes, cfg)
     assert prob.telemetry and prob.biases
+    assert (prob.telemetry[0].w_axis is not None) == (velocity_error == 'separate')
     beta = np.concatenate([beta0, np.zeros(prob.n - beta0.size)]) + rng.normal(
         0.0, 0.5, prob.n
     )

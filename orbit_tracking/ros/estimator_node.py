@@ -250,6 +250,15 @@ class EstimatorNode(StationInputs):
                 min_value=0.0,
                 max_value=1e6,
             ),
+            telemetry_velocity_error=declare(
+                self,
+                'telemetry_velocity_error',
+                'auto',
+                'Telemetry velocity error model: derivative (of the position error), separate '
+                '(an error of its own: GNSS Doppler, INS, a time-tag skew) or auto (chosen per '
+                'window by a score test on the velocity residuals).',
+                read_only=True,
+            ),
             max_chi2_dof=declare(
                 self,
                 'max_chi2_dof',

@@ -12,7 +12,14 @@ from orbit_tracking.core.estimation.coverage import CoverageConfig
 from orbit_tracking.core.estimation.knots import KnotConfig
 from orbit_tracking.core.models.systematic import BiasParameter
 
-__all__ = ['KNOT_METHODS', 'ROBUST_LOSSES', 'EstimationError', 'EstimatorConfig', 'Segment']
+__all__ = [
+    'KNOT_METHODS',
+    'ROBUST_LOSSES',
+    'TELEMETRY_VELOCITY_ERRORS',
+    'EstimationError',
+    'EstimatorConfig',
+    'Segment',
+]
 
 
 FloatArray = NDArray[np.float64]
@@ -25,6 +32,10 @@ KNOT_METHODS: tuple[str, ...] = ('sparse', 'dense', 'uniform', 'dynamics', 'poly
 
 ROBUST_LOSSES: tuple[str, ...] = ('huber', 'cauchy', 'none')
 """Losses of the robust warm-up solve that decides which rows are gross errors."""
+
+TELEMETRY_VELOCITY_ERRORS: tuple[str, ...] = ('auto', 'derivative', 'separate')
+"""How the telemetry velocity error is modelled: the derivative of the position error
+only, with a separate error of its own, or chosen per window by a test on the residuals."""
 
 
 class EstimationError(OrbitTrackingError, RuntimeError):
@@ -84,6 +95,16 @@ class EstimatorConfig:
         the measurement-driven test refines like the trajectory's).
     telemetry_error_spacing : float
         Knot spacing [s] of the telemetry error spline (cubic).
+    telemetry_velocity_error : str
+        ``derivative``: the telemetry velocity error is ``e'`` (velocity integrated into
+        the position, one error source); ``separate``: ``e' + w`` with ``w`` an error of
+        its own (velocity from GNSS Doppler or an INS, a time-tag skew between the two);
+        ``auto`` (default): ``derivative`` unless the velocity residuals of the solved
+        window show an error of their own (a test at ``telemetry_velocity_alpha``).
+    telemetry_velocity_error_spacing : float
+        Knot spacing [s] of ``w`` (piecewise linear).
+    telemetry_velocity_alpha : float
+        Significance of the test that switches ``auto`` to ``separate``.
     estimate_telemetry_noise : bool
         Re-estimate the telemetry white-noise levels from the residuals.
     max_chi2_dof : float
@@ -150,6 +171,9 @@ class EstimatorConfig:
     robust_scale: float | None = None
     use_telemetry: bool = True
     telemetry_error_spacing: float = 15.0
+    telemetry_velocity_error: str = 'auto'
+    telemetry_velocity_error_spacing: float = 20.0
+    telemetry_velocity_alpha: float = 1e-3
     estimate_telemetry_noise: bool = True
     estimate_station_noise: bool = True
     max_chi2_dof: float = 1.5
@@ -198,6 +222,15 @@ class EstimatorConfig:
             raise ValueError(f'robust_scale must be finite and > 0; got {self.robust_scale}')
         if self.telemetry_error_spacing <= 0.0:
             raise ValueError('telemetry_error_spacing must be > 0')
+        if self.telemetry_velocity_error not in TELEMETRY_VELOCITY_ERRORS:
+            raise ValueError(
+                f'telemetry_velocity_error must be one of {TELEMETRY_VELOCITY_ERRORS}; '
+                f'got {self.telemetry_velocity_error!r}'
+            )
+        if not self.telemetry_velocity_error_spacing > 0.0:
+            raise ValueError('telemetry_velocity_error_spacing must be > 0')
+        if not 0.0 < self.telemetry_velocity_alpha < 1.0:
+            raise ValueError('telemetry_velocity_alpha must lie in (0, 1)')
         if self.thrust_along_velocity < 0.0 or self.thrust_grid <= 0.0 or self.gm <= 0.0:
             raise ValueError('thrust_along_velocity must be >= 0, thrust_grid and gm > 0')
         for a, b in self.segments:

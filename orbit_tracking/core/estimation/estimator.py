@@ -66,6 +66,7 @@ from orbit_tracking.core.estimation.knots import (
 from orbit_tracking.core.estimation.observability import bias_estimates, freeze_unobservable
 from orbit_tracking.core.estimation.problem import Problem
 from orbit_tracking.core.estimation.results import Estimate, TargetSolution, state_covariance
+from orbit_tracking.core.estimation.telemetry_velocity import velocity_error_test
 from orbit_tracking.core.estimation.verdict import judge
 from orbit_tracking.core.models.measurements import residual
 
@@ -251,6 +252,24 @@ def _estimate_once(
         iterations += it2
         halvings += h2
         r, jac, cov, cond, singular = covariance(prob, out.beta)
+    tel_note = ''
+    if cfg.telemetry_velocity_error == 'auto' and prob.telemetry:
+        tests = velocity_error_test(prob, out.beta, obs, cfg, t0, t1)
+        switch = {t.target: True for t in tests if t.separate}
+        if switch:
+            prob, beta = rebuild(prob, out.beta, {}, {}, obs, cfg, t0, t1, switch)
+            out, it2, h2 = solve(prob, beta, cfg, warm_up=False)
+            iterations += it2
+            halvings += h2
+            r, jac, cov, cond, singular = covariance(prob, out.beta)
+        tel_note = ''.join(
+            f'; telemetry {t.target} velocity error '
+            + ('of its own' if t.separate else "= d/dt position error")
+            + f' (test {t.statistic:.3g} vs {t.threshold:.3g}, {t.dof} dof)'
+            for t in tests
+        )
+    elif cfg.telemetry_velocity_error == 'separate' and prob.telemetry:
+        tel_note = '; telemetry velocity error of its own (configured)'
     pruned = {tid: 0 for tid in selections}
     if cfg.prune_z > 0.0 and cfg.knot_method == 'sparse':
         # knots the measurements do not support go before the knot test adds any
@@ -365,6 +384,7 @@ def _estimate_once(
     }
     msg = (
         out.message
+        + tel_note
         + refine_note
         + (
             f'; target(s) {left_out} left out: no telemetry, fixes or previous solution'

@@ -215,10 +215,12 @@ def rebuild(
     cfg: EstimatorConfig,
     t0: float,
     t1: float,
+    tel_separate: Mapping[int, bool] | None = None,
 ) -> tuple[Problem, FloatArray]:
     """The problem on new knots, started from the current solution (refined knots contain
     the old ones, so the current spline is represented exactly; pruned ones get its
-    least-squares fit)."""
+    least-squares fit). ``tel_separate`` switches targets' telemetry to a velocity error
+    of its own (started at zero); the others keep their model."""
     sols: dict[int, tuple[SplineTrajectory, FloatArray]] = {}
     for tid, traj in prob.trajs.items():
         coef = prob._coef(beta, tid)
@@ -235,7 +237,9 @@ def rebuild(
             traj = nt
         sols[tid] = (traj, coef)
     tel_axes = {tb.target: new_tel.get(tb.target, tb.axis) for tb in prob.telemetry}
-    new = Problem(obs, sols, cfg, t0, t1, tel_axes)
+    separate = {tb.target: tb.w_axis is not None for tb in prob.telemetry}
+    separate.update(tel_separate or {})
+    new = Problem(obs, sols, cfg, t0, t1, tel_axes, separate)
     new.gated = prob.gated
     new.gate_refused = prob.gate_refused
     beta_new = np.zeros(new.n)
@@ -264,6 +268,11 @@ def rebuild(
                 [tb_new.axis.fit(ts, vals[:, c], ridge=0.0) for c in range(3)], axis=1
             )
         beta_new[tb_new.offset : tb_new.offset + new_e.size] = new_e.ravel()
+        if tb_new.w_axis is not None and tb_old.w_axis is not None:  # same window, same w
+            n_w = 3 * tb_old.w_axis.n_coef
+            o_old = tb_old.offset + 3 * tb_old.axis.n_coef
+            o_new = tb_new.offset + 3 * tb_new.axis.n_coef
+            beta_new[o_new : o_new + n_w] = beta[o_old : o_old + n_w]
     return new, beta_new
 
 

@@ -57,7 +57,7 @@ def _parameter_name(prob: Problem, k: int) -> str:
         bp = prob.biases[k - prob.bias_offset]
         return f'bias {bp.station}/{bp.name}'
     for tb in prob.telemetry:
-        if tb.offset <= k < tb.offset + 3 * tb.axis.n_coef:
+        if tb.offset <= k < tb.offset + tb.n_error:
             return f'telemetry error of target {tb.target}'
     for tid, off in prob.offsets.items():
         if off <= k < off + prob.trajs[tid].n_coef:

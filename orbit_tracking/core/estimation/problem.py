@@ -22,7 +22,16 @@ from orbit_tracking.core.estimation.knots import uniform_knots
 from orbit_tracking.core.models.measurements import predict, residual
 from orbit_tracking.core.models.systematic import CLOCK, BiasModel
 
-__all__ = ['ROBUST_KINDS', 'GateKey', 'GateUnits', 'Problem', 'Tag', 'thrust_normal']
+__all__ = [
+    'ROBUST_KINDS',
+    'VELOCITY_ERROR_PRIOR',
+    'GateKey',
+    'GateUnits',
+    'Problem',
+    'Tag',
+    'thrust_normal',
+    'velocity_error_axis',
+]
 
 FloatArray = NDArray[np.float64]
 
@@ -96,6 +105,22 @@ class _TelemetryBlock:
     noise: list[float]  # [position, velocity] white sigma
     valid_p: NDArray[np.bool_]
     valid_v: NDArray[np.bool_]
+    # a velocity error of its own (velocity from another source than the position): a
+    # piecewise-linear spline per axis, coefficients after those of e (None: e' only)
+    w_axis: SplineAxis | None = None
+    w_design: sp.csr_matrix | None = None  # (3m, 3 n_w)
+
+    @property
+    def n_error(self) -> int:
+        """Telemetry error coefficients: e, then w if any."""
+        return 3 * self.axis.n_coef + (0 if self.w_axis is None else 3 * self.w_axis.n_coef)
+
+    def velocity_error(self, beta: FloatArray) -> FloatArray:
+        """The separate velocity error at the telemetry epochs, (3m,) (zeros without)."""
+        if self.w_design is None or self.w_axis is None:
+            return np.zeros(3 * self.time.size)
+        o = self.offset + 3 * self.axis.n_coef
+        return np.asarray(self.w_design @ beta[o : o + 3 * self.w_axis.n_coef])
 
 
 @dataclass
@@ -145,6 +170,27 @@ def thrust_normal(
     return c, jp, jv, proj
 
 
+VELOCITY_ERROR_PRIOR = 0.1
+"""Prior sigma [m/s] of a separate telemetry velocity error's coefficients: weak (the
+velocity rows determine it), only so that a span without telemetry stays regular."""
+
+
+def velocity_error_axis(t0: float, t1: float, cfg: EstimatorConfig) -> SplineAxis:
+    """The separate telemetry velocity error's spline: piecewise linear, knots on the
+    multiples of ``telemetry_velocity_error_spacing`` s."""
+    knots = uniform_knots(t0, t1, cfg.telemetry_velocity_error_spacing, degree=1)
+    return SplineAxis.from_interior(knots, t0, t1, 1)
+
+
+def _error_prior_sigma(tb: _TelemetryBlock) -> FloatArray:
+    """Prior sigma of every telemetry error coefficient: the declared position sigma for
+    ``e``, :data:`VELOCITY_ERROR_PRIOR` for a separate velocity error."""
+    n_e = 3 * tb.axis.n_coef
+    out = np.full(tb.n_error, tb.prior_sigma[0])
+    out[n_e:] = VELOCITY_ERROR_PRIOR
+    return out
+
+
 def _shift(mat: sp.spmatrix, offset: int, n: int) -> sp.csr_matrix:
     coo = mat.tocoo()
     return sp.csr_matrix((coo.data, (coo.row, coo.col + offset)), shape=(coo.shape[0], n))
@@ -159,6 +205,7 @@ class Problem:
         t0: float,
         t1: float,
         tel_axes: Mapping[int, SplineAxis] | None = None,
+        tel_separate: Mapping[int, bool] | None = None,
     ) -> None:
         self.cfg = cfg
         self.offsets: dict[int, int] = {}
@@ -206,6 +253,12 @@ class Problem:
                     axis = SplineAxis.from_interior(knots, t0, t1, 3)
                 e0, e1 = axis.design(tel.time, 0), axis.design(tel.time, 1)
                 i3 = sp.identity(3, format='csr')
+                separate = (
+                    tel_separate.get(tid, False)
+                    if tel_separate is not None
+                    else cfg.telemetry_velocity_error == 'separate'
+                )
+                w_axis = velocity_error_axis(t0, t1, cfg) if separate else None
                 self.telemetry.append(
                     _TelemetryBlock(
                         tid,
@@ -228,9 +281,13 @@ class Problem:
                         ],
                         np.asarray(np.isfinite(tel.position).all(axis=1)),
                         np.asarray(np.isfinite(tel.velocity).all(axis=1)),
+                        w_axis,
+                        None
+                        if w_axis is None
+                        else sp.kron(w_axis.design(tel.time, 0), i3, format='csr'),
                     )
                 )
-                n += 3 * axis.n_coef
+                n += self.telemetry[-1].n_error
         self.fixes: list[_FixBlock] = []
         if cfg.fix_weight > 0.0:
             for tid, fx in obs.fixes.items():
@@ -367,13 +424,14 @@ class Problem:
                 tt = np.broadcast_to(b.time[:, None], use.shape)[use]
                 rows.append((b.target, tt, hw[:, :, :3][use], hw[:, :, 3:][use], False))
         for tb in self.telemetry:
-            ecoef = beta[tb.offset : tb.offset + 3 * tb.axis.n_coef]
+            ecoef = beta[tb.offset : tb.offset + tb.n_error]
             dp, dv = self.telemetry_residuals(tb, beta)
             sp_, sv_ = tb.noise
             use_p, use_v = self.telemetry_use(tb)
             rp = dp[use_p].ravel() / sp_
             rv = dv[use_v].ravel() / sv_
-            prior = ecoef / np.tile([tb.prior_sigma[0]], ecoef.size)
+            prior_sig = _error_prior_sigma(tb)
+            prior = ecoef / prior_sig
             res.extend([rp, rv, -prior])
             tags.append(('telemetry_position', tb.target, use_p))
             tags.append(('telemetry_velocity', tb.target, use_v))
@@ -384,9 +442,13 @@ class Problem:
                 o = self.offsets[tb.target]
                 jp = _shift(tb.pw[rows_p], o, self.n) + _shift(tb.ew[rows_p], tb.offset, self.n)
                 jv = _shift(tb.vw[rows_v], o, self.n) + _shift(tb.edw[rows_v], tb.offset, self.n)
+                if tb.w_design is not None:
+                    jv = jv + _shift(
+                        tb.w_design[rows_v], tb.offset + 3 * tb.axis.n_coef, self.n
+                    )
                 jac.extend([jp / sp_, jv / sv_])
                 # the prior row is 0 - e / sigma: its model e / sigma has derivative +1 / sigma
-                pj = sp.identity(ecoef.size, format='csr') / tb.prior_sigma[0]
+                pj = sp.diags(1.0 / prior_sig, format='csr')
                 jac.append(_shift(pj, tb.offset, self.n))
                 eye = np.eye(3)
                 for valid, sig, vel in ((use_p, sp_, False), (use_v, sv_, True)):
@@ -467,7 +529,7 @@ class Problem:
         ecoef = beta[tb.offset : tb.offset + 3 * tb.axis.n_coef]
         m = tb.time.size
         pred_p = (tb.pw @ coef + tb.ew @ ecoef).reshape(m, 3) + self.origin[tb.target]
-        pred_v = (tb.vw @ coef + tb.edw @ ecoef).reshape(m, 3)
+        pred_v = (tb.vw @ coef + tb.edw @ ecoef + tb.velocity_error(beta)).reshape(m, 3)
         return np.nan_to_num(tb.position) - pred_p, np.nan_to_num(tb.velocity) - pred_v
 
     def telemetry_use(self, tb: _TelemetryBlock) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:

@@ -114,11 +114,15 @@ def draw_scenario(kind: str, seed: int) -> Scenario:
     return draw(kind, seed).scenario
 
 
-def draw(kind: str, seed: int, span_s: float | None = None) -> Draw:
+def draw(
+    kind: str, seed: int, span_s: float | None = None, telemetry_model: str | None = None
+) -> Draw:
     """One scenario of family ``kind`` and what was drawn (:class:`Draw`).
 
     ``span_s`` replaces the drawn span length (short draws for tests; everything else is
     drawn for that span, so the draw differs from the family's own for ``seed``).
+    ``telemetry_model`` (one of :data:`TELEMETRY_MODELS`) forces telemetry with that error
+    model (its parameters still drawn): a test per error class.
     """
     if kind not in KINDS:
         raise ValueError(f'unknown scenario family {kind!r}; known: {KINDS}')
@@ -126,10 +130,14 @@ def draw(kind: str, seed: int, span_s: float | None = None) -> Draw:
         raise ValueError(f'seed must be an integer >= 0; got {seed!r}')
     if span_s is not None and not 20.0 <= span_s <= 600.0:
         raise ValueError(f'span_s must lie in [20, 600] s; got {span_s}')
+    if telemetry_model is not None and telemetry_model not in TELEMETRY_MODELS:
+        raise ValueError(
+            f'unknown telemetry_model {telemetry_model!r}; known: {TELEMETRY_MODELS}'
+        )
     rng = np.random.default_rng([int(seed), zlib.crc32(kind.encode())])
     if kind == 'ascent':
-        return _ascent(rng, int(seed), span_s)
-    return _aircraft(rng, int(seed), span_s)
+        return _ascent(rng, int(seed), span_s, telemetry_model)
+    return _aircraft(rng, int(seed), span_s, telemetry_model)
 
 
 def jerk_jumps(scenario: Scenario) -> tuple[float, ...]:
@@ -466,7 +474,9 @@ def _ascent_station(
     }
 
 
-def _ascent(rng: np.random.Generator, seed: int, span_s: float | None) -> Draw:
+def _ascent(
+    rng: np.random.Generator, seed: int, span_s: float | None, forced: str | None = None
+) -> Draw:
     span = _r(rng.uniform(60.0, 120.0), 1)
     span = span if span_s is None else float(span_s)
     launch = {
@@ -492,7 +502,7 @@ def _ascent(rng: np.random.Generator, seed: int, span_s: float | None) -> Draw:
             break
     else:
         raise RuntimeError(f'ascent seed {seed}: no plausible vehicle in {_MAX_TRIES} draws')
-    has_tel = rng.random() < 0.85
+    has_tel = rng.random() < 0.85 or forced is not None
     n_st = int(rng.integers(3, 13))
     kinds = list(rng.choice(['cw_radar', 'optical', 'pulse_radar'], n_st, p=[0.45, 0.35, 0.2]))
     if not has_tel:  # the rough trajectory is then triangulated: two stations need angles
@@ -525,6 +535,7 @@ def _ascent(rng: np.random.Generator, seed: int, span_s: float | None) -> Draw:
     if has_tel:
         rate = float(rng.choice([5.0, 10.0, 20.0]))
         model = str(rng.choice(TELEMETRY_MODELS))
+        model = forced or model
         outages = []
         for _ in range(int(rng.integers(0, 3))):
             length = rng.uniform(2.0, 15.0)
@@ -735,7 +746,9 @@ def _radar_coverage(data: dict[str, Any]) -> float:
     return float(np.mean(seen))
 
 
-def _aircraft(rng: np.random.Generator, seed: int, span_s: float | None) -> Draw:
+def _aircraft(
+    rng: np.random.Generator, seed: int, span_s: float | None, forced: str | None = None
+) -> Draw:
     span = _r(rng.uniform(120.0, 300.0), 1)
     span = span if span_s is None else float(span_s)
     lat0, lon0 = rng.uniform(-50.0, 50.0), rng.uniform(-180.0, 180.0)
@@ -786,7 +799,7 @@ def _aircraft(rng: np.random.Generator, seed: int, span_s: float | None) -> Draw
         )
     turns = [(a, b) for a, b in turns if a < span]
     rate = float(rng.choice([1.0, 2.0, 5.0]))
-    model = str(rng.choice(TELEMETRY_MODELS))
+    model = forced or str(rng.choice(TELEMETRY_MODELS))
     outages: list[list[float]] = []
     if turns:
         k = min(len(turns), int(rng.integers(1, 4)))

@@ -207,8 +207,10 @@ class _Case:
     in_gap: NDArray[np.bool_]
 
 
-def _case(kind: str, seed: int, span_s: float | None = None) -> _Case:
-    d = draw(kind, seed, span_s)
+def _case(
+    kind: str, seed: int, span_s: float | None = None, telemetry_model: str | None = None
+) -> _Case:
+    d = draw(kind, seed, span_s, telemetry_model)
     world = World(d.scenario)
     result = simulate(d.scenario, world)
     tr = result.truth[TARGET]
@@ -456,6 +458,7 @@ def run_draw(
     time_limit: float | None = 600.0,
     fail: Mapping[str, str] | None = None,
     span_s: float | None = None,
+    telemetry_model: str | None = None,
 ) -> DrawResult:
     """Simulate, bound and score draw ``(kind, seed)``; never raises.
 
@@ -471,11 +474,13 @@ def run_draw(
         Methods made to raise with the given message (tests of the recording).
     span_s : float, optional
         Span of the draw instead of the family's (short draws for tests).
+    telemetry_model : str, optional
+        Telemetry with this error model (:func:`~orbit_tracking.core.sim.families.draw`).
     """
     start = time.perf_counter()
     base = DrawResult(kind, seed)
     try:
-        case = _case(kind, seed, span_s)
+        case = _case(kind, seed, span_s, telemetry_model)
         d = case.draw
         values = sum(int(np.isfinite(t.values).sum()) for t in case.result.measurements.values())
         base = dataclasses.replace(

@@ -1,0 +1,102 @@
+"""Which telemetry velocity error a window needs (issue 14): the derivative of the position
+error, or an error of its own.
+
+Fused telemetry is modelled as ``p(t) + e(t)`` and ``v(t) + e'(t)`` (one error source:
+the velocity integrated into the position, or the position differentiated). Real
+telemetry often has a velocity from another source than its position (GNSS Doppler, an
+INS), or the two time-tagged differently, and then its velocity error is not ``e'``. The
+velocity rows, ~100 times more precise than the position rows, then pull ``e'`` (and with
+it the trajectory inside an incomplete segment) to an error that is not the position's.
+
+:func:`velocity_error_test` is a score (Lagrange-multiplier) test at the solved window for
+adding ``w``, a piecewise-linear velocity error of its own (knots every
+``telemetry_velocity_error_spacing`` s): ``g^T S^-1 g`` with ``g = J_w^T r`` the gradient
+of the whitened residuals along ``w`` and ``S = J_w^T J_w - C^T (J^T J)^-1 C``, ``C =
+J^T J_w``, what of ``w`` the other parameters cannot take. Under the one-source model it is
+chi-square with as many degrees of freedom as ``S`` has rank; above its
+``1 - telemetry_velocity_alpha`` quantile the window is solved again with ``e' + w``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.stats import chi2
+
+from orbit_tracking.core.data.observations import Observations
+from orbit_tracking.core.estimation.config import EstimatorConfig
+
+if TYPE_CHECKING:
+    from orbit_tracking.core.estimation.problem import Problem
+
+__all__ = ['VelocityErrorTest', 'velocity_error_test']
+
+FloatArray = NDArray[np.float64]
+
+MIN_EPOCHS = 20
+"""Telemetry velocity epochs a window needs before the test is made."""
+
+
+@dataclass(frozen=True)
+class VelocityErrorTest:
+    """The test on one target's telemetry velocity residuals."""
+
+    target: int
+    statistic: float
+    threshold: float
+    dof: int
+
+    @property
+    def separate(self) -> bool:
+        """True when the velocity has an error of its own."""
+        return self.statistic > self.threshold
+
+
+def velocity_error_test(
+    prob: Problem,
+    beta: FloatArray,
+    obs: Observations,
+    cfg: EstimatorConfig,
+    t0: float,
+    t1: float,
+) -> list[VelocityErrorTest]:
+    """The score test of the module docstring for every telemetry block of ``prob`` modelled
+    with ``e'`` only, at the solution ``beta``."""
+    from orbit_tracking.core.estimation.knot_refinement import rebuild
+
+    out = []
+    for tb in prob.telemetry:
+        if tb.w_axis is not None or int(prob.telemetry_use(tb)[1].sum()) < MIN_EPOCHS:
+            continue
+        aug, beta_a = rebuild(prob, beta, {}, {}, obs, cfg, t0, t1, {tb.target: True})
+        r, jac, _ = aug.evaluate(beta_a, True)
+        assert jac is not None
+        ta = next(b for b in aug.telemetry if b.target == tb.target)
+        assert ta.w_axis is not None
+        o = ta.offset + 3 * ta.axis.n_coef
+        k = 3 * ta.w_axis.n_coef
+        mask = np.zeros(aug.n, dtype=bool)
+        mask[o : o + k] = True
+        jw = jac[:, np.flatnonzero(mask)].toarray()
+        jo = jac[:, np.flatnonzero(~mask)]
+        a = (jo.T @ jo).toarray()
+        a[np.diag_indices_from(a)] *= 1.0 + 1e-10
+        c = np.asarray(jo.T @ jw)
+        s = jw.T @ jw - c.T @ np.linalg.lstsq(a, c, rcond=1e-12)[0]
+        g = jw.T @ r
+        w, v = np.linalg.eigh(0.5 * (s + s.T))
+        keep = w > 1e-9 * max(float(w.max()), 1e-300)
+        if not keep.any():
+            continue
+        proj = v[:, keep].T @ g
+        stat = float(np.sum(proj**2 / w[keep]))
+        dof = int(keep.sum())
+        out.append(
+            VelocityErrorTest(
+                tb.target, stat, float(chi2.isf(cfg.telemetry_velocity_alpha, dof)), dof
+            )
+        )
+    return out

@@ -1,0 +1,77 @@
+"""Issue 14: the estimator on every telemetry error class with an incomplete segment.
+
+One drawn ascent (family seed 4 cut to 40 s: seven stations, an incomplete segment of
+9.8-31.5 s in which only a theodolite and a pulse radar measure, two staging events),
+simulated once per telemetry error model of the randomised families, estimated as
+``orbit-tracking estimate`` does and scored against the Cramér-Rao bound of the draw
+(:mod:`orbit_tracking.tools.bench.robustness_draw`). Before issue 14 correlated, jumpy or
+inconsistent telemetry errors made the knots run away and the window fail silently with
+errors of hundreds of bound; the limits below catch a return of that.
+
+Measured on this draw (gap RMS / bound, outside / bound, mean position NEES over 7
+samples, band 1.47-5.07): drift 1.62 / 0.86 / 7.2, white 1.46 / 1.28 / 4.4, random_walk
+0.81 / 0.92 / 3.2, gauss_markov 0.99 / 0.75 / 5.2, bias_drift 0.93 / 0.96 / 3.7,
+separate_velocity 1.58 / 0.79 / 7.9, time_skew 5.14 / 1.72 / 5.5, jumps 0.69 / 0.98 /
+3.8, quantised 1.25 / 1.13 / 4.5. The issue's targets (gap within 1.5 bounds, NEES in its
+band) are not all met (time_skew's gap; the NEES of drift, separate_velocity,
+gauss_markov and time_skew); the limits here are regression guards, not the targets.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from orbit_tracking.core.estimation.config import EstimatorConfig
+from orbit_tracking.core.estimation.estimator import estimate
+from orbit_tracking.core.sim.families import TELEMETRY_MODELS
+from orbit_tracking.tools.bench.robustness_draw import _case, run_draw
+
+SEED, SPAN = 4, 40.0
+
+GAP_LIMIT = {'time_skew': 8.0}
+"""Gap RMS over its bound, where a class is known to be weaker than the default 3."""
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize('model', TELEMETRY_MODELS)
+def test_every_telemetry_error_class_is_estimated_within_a_few_bounds_and_honestly(model):
+    d = run_draw('ascent', SEED, 30.0, methods=('ours',), span_s=SPAN, telemetry_model=model)
+    assert not d.error, d.error
+    assert d.telemetry_model == model and d.gaps, d.summary
+    (m,) = d.methods
+    assert m.ran, m.error
+    assert m.windows_failed == 0 and m.windows_raised == 0, m.window_messages
+    assert m.silent == 0
+    assert m.coverage > 0.95
+    assert m.pos_ratio_gap <= GAP_LIMIT.get(model, 3.0), (m.pos_rms_gap, m.pos_ratio_gap)
+    assert m.pos_ratio_out <= 2.5, (m.pos_rms_out, m.pos_ratio_out)
+    # honest within a factor 2 of the band's top (7 samples: the band is wide already)
+    assert m.nees_mean <= 2.0 * m.nees_hi, (m.nees_mean, m.nees_hi)
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize(('model', 'separate'), [('white', False), ('time_skew', True)])
+def test_the_telemetry_velocity_gets_an_error_of_its_own_only_when_its_residuals_ask(
+    model, separate
+):
+    """White telemetry errors keep the one-source model (velocity error = d/dt position
+    error); a time-tag skew between position and velocity (velocity error = acceleration x
+    skew, not the position's) is detected by the score test and modelled."""
+    case = _case('ascent', SEED, SPAN, model)
+    est = estimate(case.obs_est, 0.0, SPAN, EstimatorConfig())
+    assert est.success, est.message
+    own = 'velocity error of its own' in est.message
+    assert own == separate, est.message
+    fixed = estimate(case.obs_est, 0.0, SPAN, EstimatorConfig(telemetry_velocity_error='derivative'))
+    assert 'velocity error' not in fixed.message
+    if not separate:  # the same solve either way
+        assert fixed.cost == pytest.approx(est.cost, rel=1e-12)
+
+
+def test_the_velocity_error_options_are_checked():
+    with pytest.raises(ValueError, match='telemetry_velocity_error must be one of'):
+        EstimatorConfig(telemetry_velocity_error='guess')
+    with pytest.raises(ValueError, match='telemetry_velocity_error_spacing'):
+        EstimatorConfig(telemetry_velocity_error_spacing=0.0)
+    with pytest.raises(ValueError, match='telemetry_velocity_alpha'):
+        EstimatorConfig(telemetry_velocity_alpha=1.0)
