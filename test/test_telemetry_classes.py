@@ -8,13 +8,12 @@ simulated once per telemetry error model of the randomised families, estimated a
 inconsistent telemetry errors made the knots run away and the window fail silently with
 errors of hundreds of bound; the limits below catch a return of that.
 
-Measured on this draw (gap RMS / bound, outside / bound, mean position NEES over 7
-samples, band 1.47-5.07): drift 1.62 / 0.86 / 7.2, white 1.46 / 1.28 / 4.4, random_walk
-0.81 / 0.92 / 3.2, gauss_markov 0.99 / 0.75 / 5.2, bias_drift 0.93 / 0.96 / 3.7,
-separate_velocity 1.58 / 0.79 / 7.9, time_skew 5.14 / 1.72 / 5.5, jumps 0.69 / 0.98 /
-3.8, quantised 1.25 / 1.13 / 4.5. The issue's targets (gap within 1.5 bounds, NEES in its
-band) are not all met (time_skew's gap; the NEES of drift, separate_velocity,
-gauss_markov and time_skew); the limits here are regression guards, not the targets.
+Silent failures are states more than 5 sigma off by their own covariance (Mahalanobis)
+while their window claims success. The issue's targets (gap within 1.5 bounds, NEES in
+its band) are not all met on this draw (see ``python -m orbit_tracking.tools.cli bench
+--suite robustness``); the limits here are regression guards, not the targets, and
+time_skew is a known failure (strict xfail: it fails the suite once it passes, so the
+mark is removed then).
 """
 
 from __future__ import annotations
@@ -28,12 +27,27 @@ from orbit_tracking.tools.bench.robustness_draw import _case, run_draw
 
 SEED, SPAN = 4, 40.0
 
-GAP_LIMIT = {'time_skew': 8.0}
+GAP_LIMIT: dict[str, float] = {}
 """Gap RMS over its bound, where a class is known to be weaker than the default 3."""
 
 
+KNOWN_FAILING = {
+    'time_skew': 'a position time-tag skew makes a telemetry error v * skew whose slope jumps '
+    'at every staging event, which the cubic error spline cannot follow: 28 states of the '
+    'incomplete segment are more than 5 sigma off (issue 14, open)',
+}
+
+
 @pytest.mark.timeout(120)
-@pytest.mark.parametrize('model', TELEMETRY_MODELS)
+@pytest.mark.parametrize(
+    'model',
+    [
+        pytest.param(m, marks=pytest.mark.xfail(strict=True, reason=KNOWN_FAILING[m]))
+        if m in KNOWN_FAILING
+        else m
+        for m in TELEMETRY_MODELS
+    ],
+)
 def test_every_telemetry_error_class_is_estimated_within_a_few_bounds_and_honestly(model):
     d = run_draw('ascent', SEED, 30.0, methods=('ours',), span_s=SPAN, telemetry_model=model)
     assert not d.error, d.error

@@ -173,3 +173,47 @@ def test_a_solve_that_ends_near_its_optimum_counts_with_a_wider_covariance():
     assert not judge(False, 1.0, 10_000, 1.5, decrement=0.5, max_decrement=0.0).success
     both = judge(False, 1.3, 10_000, 1.5, decrement=1.0, max_decrement=4.0)
     assert both.success and both.covariance_scale == pytest.approx(1.3 * 2.0)
+
+
+def test_beyond_the_linear_range_the_covariance_is_its_largest_sigma_in_every_direction():
+    from orbit_tracking.core.estimation.results import beyond_linear
+
+    x = np.zeros((2, 6))
+    x[:, 0] = 50e3  # 50 km from the station at the origin: the limit is 500 m at 1 %
+    cov = np.zeros((2, 6, 6))
+    cov[0, :3, :3] = np.diag([4.0, 1.0, 1.0])  # 2 m: kept as it is
+    cov[1, :3, :3] = np.diag([2000.0**2, 1.0, 1.0])  # 2 km along x, 1 m across
+    cov[:, 3:, 3:] = np.diag([0.01, 0.04, 0.09])
+    cov[1, 0, 3] = cov[1, 3, 0] = 1.0
+    out, bad = beyond_linear(x, cov, np.zeros((1, 3)), 0.01)
+    assert bad.tolist() == [False, True]
+    np.testing.assert_array_equal(out[0], cov[0])
+    np.testing.assert_allclose(out[1, :3, :3], 2000.0**2 * np.eye(3))
+    np.testing.assert_allclose(out[1, 3:, 3:], 0.09 * np.eye(3))
+    np.testing.assert_array_equal(out[1, :3, 3:], cov[1, :3, 3:])
+    # never smaller than it was in any direction
+    assert np.all(np.linalg.eigvalsh(out[1] - cov[1]) >= -1e-6)
+    same, none = beyond_linear(x, cov, np.zeros((1, 3)), 0.0)
+    assert same is cov and not none.any()
+
+
+@pytest.mark.timeout(120)
+def test_a_state_the_data_leave_undetermined_is_not_published_as_a_confident_wrong_one():
+    """Robustness draw ascent 5 without telemetry: in its incomplete segment only a CW
+    radar measures, and the first window's states there were 220-1 100 m off while 5.7-160
+    sigma (Mahalanobis) of a linearised covariance with a 1.6-7 km axis: every one a
+    silent failure. Beyond the linear range the covariance is now its largest sigma in
+    every direction, and the message says where."""
+    from orbit_tracking.core.metrics import nees
+    from orbit_tracking.tools.bench.robustness_draw import _case
+
+    case = _case('ascent', 5)
+    t0, t1 = 0.0292, 60.0292
+    est = estimate(case.obs_kf, t0, t1, EstimatorConfig(use_telemetry=False))
+    assert est.success, est.message
+    assert 'beyond the linear range' in est.message
+    sol = est.targets[0]
+    idx = np.flatnonzero((case.truth_t >= t0) & (case.truth_t <= t1))
+    x, cov = sol.states(case.truth_t[idx])
+    d2 = nees(x[:, :3] - case.truth_x[idx, :3], cov[:, :3, :3])
+    assert np.max(d2) < 25.0, np.max(d2)

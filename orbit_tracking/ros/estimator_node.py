@@ -259,6 +259,18 @@ class EstimatorNode(StationInputs):
                 'window by a score test on the velocity residuals).',
                 read_only=True,
             ),
+            linear_fraction=declare(
+                self,
+                'linear_fraction',
+                0.01,
+                'Where a state is so uncertain that its largest position sigma exceeds this '
+                'fraction of its distance to the nearest station, its covariance is published '
+                'as that sigma in every direction (the linearised ellipsoid no longer describes '
+                'the error); 0 = never.',
+                read_only=True,
+                min_value=0.0,
+                max_value=0.5,
+            ),
             max_chi2_dof=declare(
                 self,
                 'max_chi2_dof',

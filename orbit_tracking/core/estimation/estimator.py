@@ -65,7 +65,12 @@ from orbit_tracking.core.estimation.knots import (
 )
 from orbit_tracking.core.estimation.observability import bias_estimates, freeze_unobservable
 from orbit_tracking.core.estimation.problem import Problem
-from orbit_tracking.core.estimation.results import Estimate, TargetSolution, state_covariance
+from orbit_tracking.core.estimation.results import (
+    Estimate,
+    TargetSolution,
+    beyond_linear,
+    state_covariance,
+)
 from orbit_tracking.core.estimation.telemetry_velocity import velocity_error_test
 from orbit_tracking.core.estimation.verdict import judge
 from orbit_tracking.core.models.measurements import residual
@@ -185,7 +190,15 @@ def _estimate_once(
         )
     knot_time = _time.perf_counter() - k_start
     s_start = _time.perf_counter()
-    prob = Problem(obs, {t: (s.trajectory, s.coef) for t, s in selections.items()}, cfg, t0, t1)
+    events = {t: s.events for t, s in selections.items()}
+    prob = Problem(
+        obs,
+        {t: (s.trajectory, s.coef) for t, s in selections.items()},
+        cfg,
+        t0,
+        t1,
+        tel_events=events,
+    )
     beta = np.zeros(prob.n)
     for tid, s in selections.items():
         o = prob.offsets[tid]
@@ -237,7 +250,12 @@ def _estimate_once(
             selections[tid] = replace(sel2, rough_source='fixes, then first solution')
         first, first_beta = prob, out.beta
         prob = Problem(
-            obs, {t: (s.trajectory, s.coef) for t, s in selections.items()}, cfg, t0, t1
+            obs,
+            {t: (s.trajectory, s.coef) for t, s in selections.items()},
+            cfg,
+            t0,
+            t1,
+            tel_events=events,
         )
         beta = np.zeros(prob.n)
         for tid, s in selections.items():
@@ -264,7 +282,7 @@ def _estimate_once(
             r, jac, cov, cond, singular = covariance(prob, out.beta)
         tel_note = ''.join(
             f'; telemetry {t.target} velocity error '
-            + ('of its own' if t.separate else "= d/dt position error")
+            + ('of its own' if t.separate else '= d/dt position error')
             + f' (test {t.statistic:.3g} vs {t.threshold:.3g}, {t.dof} dof)'
             for t in tests
         )
@@ -360,6 +378,9 @@ def _estimate_once(
     )
     cov = cov * verdict.covariance_scale
     targets = {}
+    # where the stations stood (a few samples of each: ships move), for beyond_linear
+    where = [b.pose.position[:: max(1, len(b.pose) // 20)] for b in prob.stations if len(b.pose)]
+    stations_at = np.vstack(where) if where else np.zeros((0, 3))
     for tid, s in selections.items():
         o = prob.offsets[tid]
         nt = s.trajectory.n_coef
@@ -375,6 +396,8 @@ def _estimate_once(
             if tel is None
             else (tel.axis, out.beta[tel.offset : tel.offset + 3 * tel.axis.n_coef].copy()),
             None if tel is None else (tel.noise[0], tel.noise[1]),
+            stations_at,
+            cfg.linear_fraction,
         )
     factors = {
         (b.station, f): float(b.factor[j])
@@ -407,6 +430,22 @@ def _estimate_once(
         )
     if verdict.covariance_scale != near:
         msg += f'; covariance scaled by the misfit ({verdict.covariance_scale / near:.3g})'
+    for tid, sol in targets.items():
+        tt = np.arange(math.ceil(t0 * 2.0) / 2.0, t1, 0.5)
+        if tt.size and sol.linear_fraction > 0.0 and sol.stations.size:
+            x = sol.trajectory.states(sol.coef, tt)
+            _, bad = beyond_linear(
+                x,
+                state_covariance(sol.trajectory, sol.covariance, tt),
+                sol.stations,
+                sol.linear_fraction,
+            )
+            if bad.any():
+                msg += (
+                    f'; target {tid}: {tt[bad][0]:.1f}-{tt[bad][-1]:.1f} s ({bad.mean():.0%}) '
+                    'beyond the linear range (sigma above '
+                    f'{sol.linear_fraction:g} of the station distance): covariance isotropic'
+                )
     if factors:
         msg += '; sigmas used larger than declared: ' + ', '.join(
             f'{st} {f} x{k:.2f}' for (st, f), k in sorted(factors.items())

@@ -239,7 +239,7 @@ def rebuild(
     tel_axes = {tb.target: new_tel.get(tb.target, tb.axis) for tb in prob.telemetry}
     separate = {tb.target: tb.w_axis is not None for tb in prob.telemetry}
     separate.update(tel_separate or {})
-    new = Problem(obs, sols, cfg, t0, t1, tel_axes, separate)
+    new = Problem(obs, sols, cfg, t0, t1, tel_axes, separate, prob.tel_events)
     new.gated = prob.gated
     new.gate_refused = prob.gate_refused
     beta_new = np.zeros(new.n)

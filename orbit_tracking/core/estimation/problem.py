@@ -175,10 +175,15 @@ VELOCITY_ERROR_PRIOR = 0.1
 velocity rows determine it), only so that a span without telemetry stays regular."""
 
 
-def velocity_error_axis(t0: float, t1: float, cfg: EstimatorConfig) -> SplineAxis:
+def velocity_error_axis(
+    t0: float, t1: float, cfg: EstimatorConfig, events: Sequence[float] = ()
+) -> SplineAxis:
     """The separate telemetry velocity error's spline: piecewise linear, knots on the
-    multiples of ``telemetry_velocity_error_spacing`` s."""
-    knots = uniform_knots(t0, t1, cfg.telemetry_velocity_error_spacing, degree=1)
+    multiples of ``telemetry_velocity_error_spacing`` s, and one at each event (free to
+    turn there: a velocity time-tag skew is the acceleration times the skew, which jumps
+    where the acceleration does; a piecewise-linear spline cannot jump, so the knot test
+    and ``e'``, which can, share that)."""
+    knots = uniform_knots(t0, t1, cfg.telemetry_velocity_error_spacing, events=events, degree=2)
     return SplineAxis.from_interior(knots, t0, t1, 1)
 
 
@@ -206,8 +211,12 @@ class Problem:
         t1: float,
         tel_axes: Mapping[int, SplineAxis] | None = None,
         tel_separate: Mapping[int, bool] | None = None,
+        tel_events: Mapping[int, Sequence[float]] | None = None,
     ) -> None:
         self.cfg = cfg
+        # the telemetry error may bend where the acceleration jumps (an error proportional
+        # to the state: a time-tag skew, a scale factor)
+        self.tel_events = dict(tel_events or {})
         self.offsets: dict[int, int] = {}
         n = 0
         for tid, (traj, _) in solutions.items():
@@ -258,7 +267,11 @@ class Problem:
                     if tel_separate is not None
                     else cfg.telemetry_velocity_error == 'separate'
                 )
-                w_axis = velocity_error_axis(t0, t1, cfg) if separate else None
+                w_axis = (
+                    velocity_error_axis(t0, t1, cfg, self.tel_events.get(tid, ()))
+                    if separate
+                    else None
+                )
                 self.telemetry.append(
                     _TelemetryBlock(
                         tid,
@@ -443,9 +456,7 @@ class Problem:
                 jp = _shift(tb.pw[rows_p], o, self.n) + _shift(tb.ew[rows_p], tb.offset, self.n)
                 jv = _shift(tb.vw[rows_v], o, self.n) + _shift(tb.edw[rows_v], tb.offset, self.n)
                 if tb.w_design is not None:
-                    jv = jv + _shift(
-                        tb.w_design[rows_v], tb.offset + 3 * tb.axis.n_coef, self.n
-                    )
+                    jv = jv + _shift(tb.w_design[rows_v], tb.offset + 3 * tb.axis.n_coef, self.n)
                 jac.extend([jp / sp_, jv / sv_])
                 # the prior row is 0 - e / sigma: its model e / sigma has derivative +1 / sigma
                 pj = sp.diags(1.0 / prior_sig, format='csr')
