@@ -76,7 +76,8 @@ def test_the_telemetry_velocity_gets_an_error_of_its_own_only_when_its_residuals
     assert est.success, est.message
     own = 'velocity error of its own' in est.message
     assert own == separate, est.message
-    fixed = estimate(case.obs_est, 0.0, SPAN, EstimatorConfig(telemetry_velocity_error='derivative'))
+    derivative = EstimatorConfig(telemetry_velocity_error='derivative')
+    fixed = estimate(case.obs_est, 0.0, SPAN, derivative)
     assert 'velocity error' not in fixed.message
     if not separate:  # the same solve either way
         assert fixed.cost == pytest.approx(est.cost, rel=1e-12)

@@ -430,21 +430,21 @@ def _estimate_once(
         )
     if verdict.covariance_scale != near:
         msg += f'; covariance scaled by the misfit ({verdict.covariance_scale / near:.3g})'
-    for tid, sol in targets.items():
+    for tid, ts_ in targets.items():
         tt = np.arange(math.ceil(t0 * 2.0) / 2.0, t1, 0.5)
-        if tt.size and sol.linear_fraction > 0.0 and sol.stations.size:
-            x = sol.trajectory.states(sol.coef, tt)
+        if tt.size and ts_.linear_fraction > 0.0 and ts_.stations.size:
+            x = ts_.trajectory.states(ts_.coef, tt)
             _, bad = beyond_linear(
                 x,
-                state_covariance(sol.trajectory, sol.covariance, tt),
-                sol.stations,
-                sol.linear_fraction,
+                state_covariance(ts_.trajectory, ts_.covariance, tt),
+                ts_.stations,
+                ts_.linear_fraction,
             )
             if bad.any():
                 msg += (
                     f'; target {tid}: {tt[bad][0]:.1f}-{tt[bad][-1]:.1f} s ({bad.mean():.0%}) '
                     'beyond the linear range (sigma above '
-                    f'{sol.linear_fraction:g} of the station distance): covariance isotropic'
+                    f'{ts_.linear_fraction:g} of the station distance): covariance isotropic'
                 )
     if factors:
         msg += '; sigmas used larger than declared: ' + ', '.join(

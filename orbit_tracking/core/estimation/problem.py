@@ -19,7 +19,7 @@ from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.estimation.bspline import SplineAxis, SplineTrajectory
 from orbit_tracking.core.estimation.config import EstimatorConfig
 from orbit_tracking.core.estimation.knots import uniform_knots
-from orbit_tracking.core.models.measurements import predict, residual
+from orbit_tracking.core.models.measurements import StationPose, predict, residual
 from orbit_tracking.core.models.systematic import CLOCK, BiasModel
 
 __all__ = [
@@ -71,7 +71,7 @@ class _StationBlock:
     time: FloatArray
     values: FloatArray
     sigmas: FloatArray
-    pose: object
+    pose: StationPose
     pw: sp.csr_matrix  # (3m, n_t) world position design
     vw: sp.csr_matrix
     valid: NDArray[np.bool_]  # (m, k)
@@ -361,7 +361,7 @@ class Problem:
         m = b.time.size
         p = (b.pw @ coef).reshape(m, 3) + self.origin[b.target]
         v = (b.vw @ coef).reshape(m, 3)
-        true, h = predict(b.fields, np.hstack([p, v]), b.pose, jacobian=jacobian)  # type: ignore[arg-type]
+        true, h = predict(b.fields, np.hstack([p, v]), b.pose, jacobian=jacobian)
         if not b.bias_index:
             return true, h, None
         names = [self.biases[q].name for q in b.bias_index]
