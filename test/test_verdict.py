@@ -176,25 +176,32 @@ def test_a_solve_that_ends_near_its_optimum_counts_with_a_wider_covariance():
 
 
 def test_beyond_the_linear_range_the_covariance_is_its_largest_sigma_in_every_direction():
-    from orbit_tracking.core.estimation.results import beyond_linear
+    from orbit_tracking.core.estimation.linearity import isotropic, nonlinear_spans
+    from orbit_tracking.core.models.measurements import StationPose
 
     x = np.zeros((2, 6))
-    x[:, 0] = 50e3  # 50 km from the station at the origin: the limit is 500 m at 1 %
+    x[:, 0] = 30e3  # 30 km east of a range-only station at the origin
+    x[:, 4] = 100.0
     cov = np.zeros((2, 6, 6))
-    cov[0, :3, :3] = np.diag([4.0, 1.0, 1.0])  # 2 m: kept as it is
-    cov[1, :3, :3] = np.diag([2000.0**2, 1.0, 1.0])  # 2 km along x, 1 m across
+    cov[0, :3, :3] = np.diag([4.0, 4.0, 1.0])  # 2 m: the range is linear over it
+    cov[1, :3, :3] = np.diag([1.0, 300.0**2, 1.0])  # 300 m across the line of sight
     cov[:, 3:, 3:] = np.diag([0.01, 0.04, 0.09])
-    cov[1, 0, 3] = cov[1, 3, 0] = 1.0
-    out, bad = beyond_linear(x, cov, np.zeros((1, 3)), 0.01)
-    assert bad.tolist() == [False, True]
+    cov[1, 1, 4] = cov[1, 4, 1] = 1.0
+    pose = StationPose.fixed([0.0, 0.0, 0.0], np.eye(3), 2)
+    rows = [(('range',), np.array([0.0, 10.0]), np.full((2, 1), 0.5), pose)]
+    # 3 x 300 m across at 30 km: the range changes by 900^2 / (2 * 30 km) = 13.5 m = 27
+    # sigma to second order (2 m: 0.0006 m)
+    assert nonlinear_spans(np.array([0.0, 10.0]), x, cov, rows, 1.0) == ((9.75, 10.25),)
+    assert nonlinear_spans(np.array([0.0, 10.0]), x, cov, rows, 26.0) == ((9.75, 10.25),)
+    assert nonlinear_spans(np.array([0.0, 10.0]), x, cov, rows, 28.0) == ()
+    assert nonlinear_spans(np.array([0.0, 10.0]), x, cov, rows, 0.0) == ()
+    out = isotropic(cov, np.array([False, True]))
     np.testing.assert_array_equal(out[0], cov[0])
-    np.testing.assert_allclose(out[1, :3, :3], 2000.0**2 * np.eye(3))
+    np.testing.assert_allclose(out[1, :3, :3], 300.0**2 * np.eye(3))
     np.testing.assert_allclose(out[1, 3:, 3:], 0.09 * np.eye(3))
     np.testing.assert_array_equal(out[1, :3, 3:], cov[1, :3, 3:])
     # never smaller than it was in any direction
     assert np.all(np.linalg.eigvalsh(out[1] - cov[1]) >= -1e-6)
-    same, none = beyond_linear(x, cov, np.zeros((1, 3)), 0.0)
-    assert same is cov and not none.any()
 
 
 @pytest.mark.timeout(120)
@@ -217,3 +224,27 @@ def test_a_state_the_data_leave_undetermined_is_not_published_as_a_confident_wro
     x, cov = sol.states(case.truth_t[idx])
     d2 = nees(x[:, :3] - case.truth_x[idx, :3], cov[:, :3, :3])
     assert np.max(d2) < 25.0, np.max(d2)
+
+
+def test_a_numerical_breakdown_is_a_failed_window_not_a_crash(monkeypatch):
+    """LAPACK can give up on a matrix that overflowed ('Eigenvalues did not converge'): two
+    robustness draws lost the whole method to it. It is now an EstimationError of that
+    window, which the window loop records and passes over."""
+    from orbit_tracking.core.estimation import estimator as est_mod
+    from orbit_tracking.core.estimation.config import EstimationError
+
+    def breaks(*_args, **_kwargs):
+        raise np.linalg.LinAlgError('Eigenvalues did not converge')
+
+    monkeypatch.setattr(est_mod, '_estimate_once', breaks)
+    obs = _observations(*_truth_spline([5.0, 10.0, 15.0]), np.random.default_rng(1), noise=True)
+    with pytest.raises(EstimationError, match='numerical failure: LinAlgError'):
+        estimate(obs, 0.0, 20.0)
+    seen = []
+    out = solve_windows(
+        obs,
+        EstimatorConfig(),
+        WindowConfig(length=20.0, overlap=5.0),
+        lambda _i, _n, _span, res: seen.append(res),
+    )
+    assert out == [] and seen and all(isinstance(r, EstimationError) for r in seen)

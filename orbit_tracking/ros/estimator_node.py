@@ -259,17 +259,17 @@ class EstimatorNode(StationInputs):
                 'window by a score test on the velocity residuals).',
                 read_only=True,
             ),
-            linear_fraction=declare(
+            nonlinear_sigma=declare(
                 self,
-                'linear_fraction',
-                0.01,
-                'Where a state is so uncertain that its largest position sigma exceeds this '
-                'fraction of its distance to the nearest station, its covariance is published '
-                'as that sigma in every direction (the linearised ellipsoid no longer describes '
-                'the error); 0 = never.',
+                'nonlinear_sigma',
+                1.0,
+                'Where three sigma of a state along its longest axis change a nearby station '
+                'value to second order by more than this many of its sigmas, the linearised '
+                'covariance no longer describes the error: it is published as its largest '
+                'sigma in every direction. 0 = never.',
                 read_only=True,
                 min_value=0.0,
-                max_value=0.5,
+                max_value=1e6,
             ),
             max_chi2_dof=declare(
                 self,

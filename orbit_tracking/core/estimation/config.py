@@ -105,10 +105,11 @@ class EstimatorConfig:
         Knot spacing [s] of ``w`` (piecewise linear).
     telemetry_velocity_alpha : float
         Significance of the test that switches ``auto`` to ``separate``.
-    linear_fraction : float
-        Where a state's largest position sigma exceeds this fraction of its distance to
-        the nearest station, its covariance is published isotropic at its largest sigma
-        (:func:`~orbit_tracking.core.estimation.results.beyond_linear`); 0 = never.
+    nonlinear_sigma : float
+        Where three sigma of a state along its longest axis change a nearby station value
+        to second order by more than this many of its sigmas, the linearised covariance
+        is published as its largest sigma in every direction
+        (:mod:`~orbit_tracking.core.estimation.linearity`); 0 = never.
     estimate_telemetry_noise : bool
         Re-estimate the telemetry white-noise levels from the residuals.
     max_chi2_dof : float
@@ -178,7 +179,7 @@ class EstimatorConfig:
     telemetry_velocity_error: str = 'auto'
     telemetry_velocity_error_spacing: float = 20.0
     telemetry_velocity_alpha: float = 1e-3
-    linear_fraction: float = 0.01
+    nonlinear_sigma: float = 1.0
     estimate_telemetry_noise: bool = True
     estimate_station_noise: bool = True
     max_chi2_dof: float = 1.5
@@ -236,8 +237,8 @@ class EstimatorConfig:
             raise ValueError('telemetry_velocity_error_spacing must be > 0')
         if not 0.0 < self.telemetry_velocity_alpha < 1.0:
             raise ValueError('telemetry_velocity_alpha must lie in (0, 1)')
-        if not 0.0 <= self.linear_fraction < 1.0:
-            raise ValueError(f'linear_fraction must lie in [0, 1); got {self.linear_fraction}')
+        if not self.nonlinear_sigma >= 0.0:
+            raise ValueError(f'nonlinear_sigma must be >= 0; got {self.nonlinear_sigma}')
         if self.thrust_along_velocity < 0.0 or self.thrust_grid <= 0.0 or self.gm <= 0.0:
             raise ValueError('thrust_along_velocity must be >= 0, thrust_grid and gm > 0')
         for a, b in self.segments:

@@ -102,7 +102,7 @@ def find_incomplete_segments(
         np.add.at(rows, b, valid.sum(axis=1))
     worst = np.full(nb, np.inf)
     for i in range(nb):
-        if rows[i] < 6:
+        if rows[i] < 6 or not np.all(np.isfinite(info[i])):
             continue
         ev = np.linalg.eigvalsh(info[i])
         if ev[0] > 1e-12 * max(ev[-1], 1e-300):

@@ -63,14 +63,14 @@ from orbit_tracking.core.estimation.knots import (
     rough_trajectory,
     selection_span,
 )
-from orbit_tracking.core.estimation.observability import bias_estimates, freeze_unobservable
-from orbit_tracking.core.estimation.problem import Problem
-from orbit_tracking.core.estimation.results import (
-    Estimate,
-    TargetSolution,
-    beyond_linear,
-    state_covariance,
+from orbit_tracking.core.estimation.observability import (
+    bias_estimates,
+    freeze_unobservable,
+    isotropic_note,
+    isotropic_spans,
 )
+from orbit_tracking.core.estimation.problem import Problem
+from orbit_tracking.core.estimation.results import Estimate, TargetSolution, state_covariance
 from orbit_tracking.core.estimation.telemetry_velocity import velocity_error_test
 from orbit_tracking.core.estimation.verdict import judge
 from orbit_tracking.core.models.measurements import residual
@@ -378,9 +378,6 @@ def _estimate_once(
     )
     cov = cov * verdict.covariance_scale
     targets = {}
-    # where the stations stood (a few samples of each: ships move), for beyond_linear
-    where = [b.pose.position[:: max(1, len(b.pose) // 20)] for b in prob.stations if len(b.pose)]
-    stations_at = np.vstack(where) if where else np.zeros((0, 3))
     for tid, s in selections.items():
         o = prob.offsets[tid]
         nt = s.trajectory.n_coef
@@ -396,8 +393,9 @@ def _estimate_once(
             if tel is None
             else (tel.axis, out.beta[tel.offset : tel.offset + 3 * tel.axis.n_coef].copy()),
             None if tel is None else (tel.noise[0], tel.noise[1]),
-            stations_at,
-            cfg.linear_fraction,
+            isotropic_spans(
+                prob, tid, s.trajectory, out.beta[o : o + nt], cov[o : o + nt, o : o + nt], cfg
+            ),
         )
     factors = {
         (b.station, f): float(b.factor[j])
@@ -430,22 +428,7 @@ def _estimate_once(
         )
     if verdict.covariance_scale != near:
         msg += f'; covariance scaled by the misfit ({verdict.covariance_scale / near:.3g})'
-    for tid, ts_ in targets.items():
-        tt = np.arange(math.ceil(t0 * 2.0) / 2.0, t1, 0.5)
-        if tt.size and ts_.linear_fraction > 0.0 and ts_.stations.size:
-            x = ts_.trajectory.states(ts_.coef, tt)
-            _, bad = beyond_linear(
-                x,
-                state_covariance(ts_.trajectory, ts_.covariance, tt),
-                ts_.stations,
-                ts_.linear_fraction,
-            )
-            if bad.any():
-                msg += (
-                    f'; target {tid}: {tt[bad][0]:.1f}-{tt[bad][-1]:.1f} s ({bad.mean():.0%}) '
-                    'beyond the linear range (sigma above '
-                    f'{ts_.linear_fraction:g} of the station distance): covariance isotropic'
-                )
+    msg += isotropic_note(targets, t0, t1, cfg.nonlinear_sigma)
     if factors:
         msg += '; sigmas used larger than declared: ' + ', '.join(
             f'{st} {f} x{k:.2f}' for (st, f), k in sorted(factors.items())
@@ -517,13 +500,13 @@ def estimate(
         cannot fail the others' window).
     """
     cfg = cfg or EstimatorConfig()
-    first = _estimate_once(obs, t0, t1, cfg, target_ids, previous, frame)
+    first = _attempt(obs, t0, t1, cfg, target_ids, previous, frame)
     if first.success or not cfg.retry:
         return first
     tried = [('the settings', first)]
     for label, cfg2, prev2 in safer_settings(cfg, previous):
         try:
-            e = _estimate_once(obs, t0, t1, cfg2, target_ids, prev2, frame)
+            e = _attempt(obs, t0, t1, cfg2, target_ids, prev2, frame)
         except OrbitTrackingError as exc:
             tried.append((label, replace(first, message=f'{label}: {exc}', chi2_dof=math.inf)))
             continue
@@ -544,6 +527,23 @@ def estimate(
         iterations=sum(t.iterations for _, t in tried),
         attempts=len(tried),
     )
+
+
+def _attempt(
+    obs: Observations,
+    t0: float,
+    t1: float,
+    cfg: EstimatorConfig,
+    target_ids: Sequence[int] | None,
+    previous: Mapping[int, TargetSolution] | None,
+    frame: tuple[FloatArray, FloatArray] | None,
+) -> Estimate:
+    """One solve; a numerical breakdown (LAPACK not converging on a matrix that overflowed)
+    is an :class:`EstimationError` of that window, never an exception that stops a pass."""
+    try:
+        return _estimate_once(obs, t0, t1, cfg, target_ids, previous, frame)
+    except (np.linalg.LinAlgError, FloatingPointError) as exc:
+        raise EstimationError(f'numerical failure: {type(exc).__name__}: {exc}') from exc
 
 
 def safer_settings(

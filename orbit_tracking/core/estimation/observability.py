@@ -1,19 +1,28 @@
-"""Which station biases the window's data can determine: unobservable ones are frozen
+"""What the window's data determine. Which station biases: unobservable ones are frozen
 (kept as consider parameters) before and after the solve, and the estimates of the others
-are reported with their covariance."""
+are reported with their covariance. And where the trajectory's linearised covariance
+still describes its error (:func:`isotropic_spans`, by
+:mod:`~orbit_tracking.core.estimation.linearity`)."""
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 
 import numpy as np
 from numpy.typing import NDArray
 
-from orbit_tracking.core.estimation.config import EstimatorConfig
+from orbit_tracking.core.estimation.bspline import SplineTrajectory
+from orbit_tracking.core.estimation.config import EstimatorConfig, Segment
+from orbit_tracking.core.estimation.linearity import SAMPLE_S, nonlinear_spans
 from orbit_tracking.core.estimation.problem import Problem
-from orbit_tracking.core.estimation.results import BiasEstimate
+from orbit_tracking.core.estimation.results import (
+    BiasEstimate,
+    TargetSolution,
+    state_covariance,
+)
 
-__all__ = ['bias_estimates', 'freeze_unobservable']
+__all__ = ['bias_estimates', 'freeze_unobservable', 'isotropic_note', 'isotropic_spans']
 
 FloatArray = NDArray[np.float64]
 
@@ -90,3 +99,46 @@ def bias_estimates(prob: Problem, beta: FloatArray, cov: FloatArray) -> tuple[Bi
             )
         )
     return tuple(out)
+
+
+def isotropic_spans(
+    prob: Problem,
+    tid: int,
+    traj: SplineTrajectory,
+    coef: FloatArray,
+    cov: FloatArray,
+    cfg: EstimatorConfig,
+) -> tuple[Segment, ...]:
+    """Where target ``tid``'s linearised covariance is no statement about its error
+    (:func:`~orbit_tracking.core.estimation.linearity.nonlinear_spans`)."""
+    if cfg.nonlinear_sigma <= 0.0 or not np.all(np.isfinite(cov)):
+        return ()
+    tt = np.arange(math.ceil(traj.t0 / SAMPLE_S) * SAMPLE_S, traj.t1, SAMPLE_S)
+    if tt.size == 0:
+        return ()
+    rows = []
+    for b in prob.stations:
+        if b.target != tid or b.time.size == 0:
+            continue
+        order = np.argsort(b.time, kind='stable')
+        sig = np.where(b.valid, b.sigmas, np.inf)[order]
+        rows.append((b.fields, b.time[order], sig, b.pose.take(order)))
+    x = traj.states(coef, tt)
+    return nonlinear_spans(tt, x, state_covariance(traj, cov, tt), rows, cfg.nonlinear_sigma)
+
+
+def isotropic_note(
+    targets: Mapping[int, TargetSolution], t0: float, t1: float, limit: float
+) -> str:
+    """The window message's note on the spans :func:`isotropic_spans` found."""
+    msg = ''
+    for tid, ts_ in targets.items():
+        if ts_.isotropic_spans:
+            lo, hi = ts_.isotropic_spans[0][0], ts_.isotropic_spans[-1][1]
+            length = sum(b - a for a, b in ts_.isotropic_spans)
+            msg += (
+                f'; target {tid}: {length:.1f} s within {max(lo, t0):.1f}-{min(hi, t1):.1f} s '
+                f'beyond the linear range (three sigma move a station value by more than '
+                f'{limit:g} of its sigma to second order): covariance isotropic there'
+            )
+    return msg

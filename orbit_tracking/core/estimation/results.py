@@ -15,8 +15,9 @@ from numpy.typing import NDArray
 from orbit_tracking.core.estimation.bspline import SplineAxis, SplineTrajectory
 from orbit_tracking.core.estimation.config import EstimationError, Segment
 from orbit_tracking.core.estimation.knots import KnotSelection
+from orbit_tracking.core.estimation.linearity import isotropic
 
-__all__ = ['BiasEstimate', 'Estimate', 'TargetSolution', 'beyond_linear', 'state_covariance']
+__all__ = ['BiasEstimate', 'Estimate', 'TargetSolution', 'state_covariance']
 
 FloatArray = NDArray[np.float64]
 
@@ -28,9 +29,10 @@ class TargetSolution:
     ``covariance`` is the marginal covariance of ``coef`` (all other parameters
     estimated too); use :meth:`states` for position/velocity and their covariance.
 
-    ``stations`` (positions of the window's stations, (k, 3)) and ``linear_fraction``
-    mark where that covariance is no statement about the error: see
-    :func:`beyond_linear`.
+    ``isotropic_spans`` are where that covariance is no statement about the error (the
+    measurements are not linear over one sigma there:
+    :func:`~orbit_tracking.core.estimation.linearity.nonlinear_spans`); :meth:`states`
+    gives the largest sigma in every direction there.
     """
 
     target_id: int
@@ -41,8 +43,7 @@ class TargetSolution:
     segments: tuple[Segment, ...]
     telemetry_error: tuple[SplineAxis, FloatArray] | None = None
     telemetry_noise: tuple[float, float] | None = None
-    stations: FloatArray = field(default_factory=lambda: np.zeros((0, 3)), repr=False)
-    linear_fraction: float = 0.0
+    isotropic_spans: tuple[Segment, ...] = ()
 
     @property
     def t0(self) -> float:
@@ -57,7 +58,12 @@ class TargetSolution:
         tt = np.asarray(t, dtype=np.float64)
         x = self.trajectory.states(self.coef, tt)
         cov = state_covariance(self.trajectory, self.covariance, tt)
-        return x, beyond_linear(x, cov, self.stations, self.linear_fraction)[0]
+        if not self.isotropic_spans:
+            return x, cov
+        inside = np.zeros(tt.shape[0], dtype=bool)
+        for a, b in self.isotropic_spans:
+            inside |= (tt >= a) & (tt <= b)
+        return x, isotropic(cov, inside)
 
     def parameters_in(self, a: float, b: float) -> int:
         """Coefficients whose support overlaps (a, b) (the seed's 'parameters in the gap')."""
@@ -67,37 +73,6 @@ class TargetSolution:
             lo, hi = k[: ax.n_coef], k[p + 1 : p + 1 + ax.n_coef]
             n += int(np.sum((hi > a) & (lo < b)))
         return n
-
-
-def beyond_linear(
-    x: FloatArray, cov: FloatArray, stations: FloatArray, fraction: float
-) -> tuple[FloatArray, NDArray[np.bool_]]:
-    """The covariance ``cov`` (m, 6, 6) of states ``x`` (m, 6), made isotropic at its
-    largest position and velocity variance where the largest position sigma exceeds
-    ``fraction`` of the distance to the nearest of ``stations`` (k, 3); and where.
-
-    The covariance is that of the linearised problem. Where the data leave a state that
-    uncertain (an incomplete segment seen by one CW radar), the angles and ranges are no
-    longer linear over one sigma, the estimate can sit far off along a direction the
-    linearisation calls thin (a 900 m error 120 sigma off along a 4.8 km-sigma ellipsoid's
-    narrow axis), and only the largest sigma still describes the error: the covariance is
-    replaced by that sigma in every direction (never smaller than it was: the position and
-    velocity blocks become their largest variance times the identity, the cross terms
-    stay, so the new covariance exceeds the old by a positive semidefinite matrix)."""
-    bad = np.zeros(x.shape[0], dtype=bool)
-    if fraction <= 0.0 or stations.size == 0 or x.shape[0] == 0:
-        return cov, bad
-    d = np.linalg.norm(x[:, None, :3] - stations[None, :, :], axis=2).min(axis=1)
-    lam_p = np.linalg.eigvalsh(cov[:, :3, :3])[:, -1]
-    bad = ~(np.sqrt(np.maximum(lam_p, 0.0)) <= fraction * d)
-    if not bad.any():
-        return cov, bad
-    lam_v = np.linalg.eigvalsh(cov[bad, 3:, 3:])[:, -1]
-    out = cov.copy()  # cross terms kept: out - cov is block-diagonal and >= 0
-    eye = np.eye(3)
-    out[bad, :3, :3] = lam_p[bad, None, None] * eye
-    out[bad, 3:, 3:] = lam_v[:, None, None] * eye
-    return out, bad
 
 
 def state_covariance(traj: SplineTrajectory, cov: FloatArray, t: FloatArray) -> FloatArray:
