@@ -139,6 +139,10 @@ def test_offline_estimate_writes_the_contract_trajectory_within_its_sigmas(
     ]
     assert summary['windows'][0]['segments'][0] == [[12.0, 18.0]]
     assert summary['windows'][0]['used']['cw03'] > 0
+    for w in summary['windows']:  # telemetry fused: the model chosen is reported per target
+        assert set(w['telemetry_velocity_error']) == {0}, w
+        assert w['telemetry_velocity_error'][0] in ('derivative', 'separate')
+        assert 'isotropic_spans' in w
     ev = summary['evaluation'][0]
     assert ev['inside_gaps']['n'] == 61 and ev['outside_gaps']['n'] == 240
     assert ev['outside_gaps']['rms_position_m'] < 0.2

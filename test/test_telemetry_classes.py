@@ -76,6 +76,7 @@ def test_the_telemetry_velocity_gets_an_error_of_its_own_only_when_its_residuals
     assert est.success, est.message
     own = 'velocity error of its own' in est.message
     assert own == separate, est.message
+    assert est.targets[0].telemetry_velocity == ('separate' if separate else 'derivative')
     derivative = EstimatorConfig(telemetry_velocity_error='derivative')
     fixed = estimate(case.obs_est, 0.0, SPAN, derivative)
     assert 'velocity error' not in fixed.message

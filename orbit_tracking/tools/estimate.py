@@ -153,6 +153,18 @@ def _window_summary(e: Estimate) -> dict[str, object]:
             int(tid): [[float(a), float(b)] for a, b in sol.segments]
             for tid, sol in sorted(e.targets.items())
         },
+        # the telemetry velocity error model chosen (derivative / separate) per target
+        'telemetry_velocity_error': {
+            int(tid): sol.telemetry_velocity
+            for tid, sol in sorted(e.targets.items())
+            if sol.telemetry_velocity
+        },
+        # where the covariance was made isotropic (beyond the linear range)
+        'isotropic_spans': {
+            int(tid): [[float(a), float(b)] for a, b in sol.isotropic_spans]
+            for tid, sol in sorted(e.targets.items())
+            if sol.isotropic_spans
+        },
     }
 
 

@@ -396,6 +396,7 @@ def _estimate_once(
             isotropic_spans(
                 prob, tid, s.trajectory, out.beta[o : o + nt], cov[o : o + nt, o : o + nt], cfg
             ),
+            '' if tel is None else ('separate' if tel.w_axis is not None else 'derivative'),
         )
     factors = {
         (b.station, f): float(b.factor[j])

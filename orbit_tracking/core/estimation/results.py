@@ -29,7 +29,9 @@ class TargetSolution:
     ``covariance`` is the marginal covariance of ``coef`` (all other parameters
     estimated too); use :meth:`states` for position/velocity and their covariance.
 
-    ``isotropic_spans`` are where that covariance is no statement about the error (the
+    ``telemetry_velocity`` is the telemetry velocity error model the window used
+    (``derivative`` or ``separate``; empty without telemetry fused). ``isotropic_spans``
+    are where that covariance is no statement about the error (the
     measurements are not linear over one sigma there:
     :func:`~orbit_tracking.core.estimation.linearity.nonlinear_spans`); :meth:`states`
     gives the largest sigma in every direction there.
@@ -44,6 +46,7 @@ class TargetSolution:
     telemetry_error: tuple[SplineAxis, FloatArray] | None = None
     telemetry_noise: tuple[float, float] | None = None
     isotropic_spans: tuple[Segment, ...] = ()
+    telemetry_velocity: str = ''
 
     @property
     def t0(self) -> float:
