@@ -1,5 +1,8 @@
 """Trajectory estimation on a window of raw measurements (seed 000).
 
+(Slightly over the ~600-line guide: the steps of one window solve, from the knots to the
+verdict, read best in one place; its parts live in the modules it imports.)
+
 The unknowns are the spline coefficients of every target's trajectory
 (:mod:`~orbit_tracking.core.estimation.bspline`, knots from
 :mod:`~orbit_tracking.core.estimation.knots`) and,
