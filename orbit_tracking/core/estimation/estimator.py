@@ -194,14 +194,12 @@ def _estimate_once(
     knot_time = _time.perf_counter() - k_start
     s_start = _time.perf_counter()
     events = {t: s.events for t, s in selections.items()}
-    prob = Problem(
-        obs,
-        {t: (s.trajectory, s.coef) for t, s in selections.items()},
-        cfg,
-        t0,
-        t1,
-        tel_events=events,
-    )
+
+    def problem_on_selections() -> Problem:
+        sols = {t: (s.trajectory, s.coef) for t, s in selections.items()}
+        return Problem(obs, sols, cfg, t0, t1, tel_events=events)
+
+    prob = problem_on_selections()
     beta = np.zeros(prob.n)
     for tid, s in selections.items():
         o = prob.offsets[tid]
@@ -252,14 +250,7 @@ def _estimate_once(
             )
             selections[tid] = replace(sel2, rough_source='fixes, then first solution')
         first, first_beta = prob, out.beta
-        prob = Problem(
-            obs,
-            {t: (s.trajectory, s.coef) for t, s in selections.items()},
-            cfg,
-            t0,
-            t1,
-            tel_events=events,
-        )
+        prob = problem_on_selections()
         beta = np.zeros(prob.n)
         for tid, s in selections.items():
             o = prob.offsets[tid]
