@@ -468,3 +468,50 @@ def test_a_restarted_results_node_skips_the_windows_the_estimator_sends_again(tm
     again = _results_pass(windows[:6] + windows[1:], counts=counts)
     assert not counts.get('windows_repeated') and counts['restarts'] == 1, counts
     assert len(again) > len(whole)
+
+
+def test_the_results_journal_keeps_the_readers_of_a_node_that_never_published(tmp_path):
+    """A results node killed while it held every state (one window in: nothing final yet)
+    still had readers; its journal must say how many, so that its successor holds what it
+    publishes until they have matched it (the failure seen: a restarted node published 90
+    states before the test's reader had discovered it). While that hold lasts the count of
+    the moment (0, the readers not back yet) must not replace it."""
+    import rclpy
+
+    from orbit_tracking.ros.results_journal import ResultsJournal
+
+    def journal(args: list[str]) -> tuple[ResultsJournal, object]:
+        rclpy.init(args=['--ros-args', '-p', f'journal_dir:={tmp_path}', *args])
+        node = rclpy.create_node('results', automatically_declare_parameters_from_overrides=False)
+        return ResultsJournal(node), node
+
+    def close(j, node) -> None:
+        j.close()
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+    j, node = journal([])
+    try:
+        assert j.readers == 0
+        j.commit(lambda: False, 2)  # nothing published, nothing acknowledged: still counted
+        assert j.readers == 2
+    finally:
+        close(j, node)
+    j, node = journal([])
+    try:
+        assert j.readers == 2  # the successor knows
+        j.commit(lambda: True, None)  # holding for them: the old count stays
+        assert j.readers == 2
+    finally:
+        close(j, node)
+    j, node = journal([])
+    try:
+        assert j.readers == 2
+        j.commit(lambda: True, 1)  # a reader left for good
+    finally:
+        close(j, node)
+    j, node = journal([])
+    try:
+        assert j.readers == 1
+    finally:
+        close(j, node)

@@ -171,19 +171,30 @@ class ResultsJournal:
             self._pending[tid] = max(ns, self._pending.get(tid, -1))
         self.commit(acked, readers)
 
-    def commit(self, acked: Callable[[], bool], readers: int = 0) -> None:
+    def commit(self, acked: Callable[[], bool], readers: int | None = 0) -> None:
         """Mark what :meth:`published` staged if ``acked()`` (call again until it is), and
         let go of the windows wholly published (all but the last). Until then a restart
         publishes those states again: a state may come twice, never not at all (a writer's
-        queue dies with its process)."""
-        if self.journal is None or not self._pending or not acked():
+        queue dies with its process).
+
+        The count of ``readers`` is recorded whenever it changes, published states or not: a
+        process killed before it published anything still had readers, and its successor
+        must hold what it publishes until they have matched it again. ``None`` while that
+        hold lasts: the readers still to come back are the old process's, not the count of
+        the moment."""
+        if self.journal is None:
+            return
+        try:
+            if readers is not None and readers != self.readers:
+                self.readers = readers
+                rec = JournalRecord(_READERS, '', -math.inf, str(readers).encode(), sticky=True)
+                self.journal.append(rec, sync=True)
+        except OSError:
+            self.write_errors += 1
+        if not self._pending or not acked():
             return
         pending, self._pending = self._pending, {}
         try:
-            if readers != self.readers:
-                self.readers = readers
-                rec = JournalRecord(_READERS, '', -math.inf, str(readers).encode(), sticky=True)
-                self.journal.append(rec)
             for tid, ns in sorted(pending.items()):
                 if ns > self.marks.get(tid, -1):
                     self.marks[tid] = ns

@@ -588,7 +588,9 @@ class ResultsNode(Node):
 
     def _journal_tick(self) -> None:
         self._release_held()
-        self.journal.commit(self._states_acked, self.states_pub.get_subscription_count())
+        holding = self.held_final is not None
+        readers = None if holding else self.states_pub.get_subscription_count()
+        self.journal.commit(self._states_acked, readers)
 
     def _release_held(self) -> None:
         """After a restart: publish what was held once the readers of the last process
