@@ -13,7 +13,8 @@ import pytest
 
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.estimation.bspline import SplineAxis, SplineTrajectory
-from orbit_tracking.core.estimation.config import EstimatorConfig
+from orbit_tracking.core.estimation.config import EstimationError, EstimatorConfig
+from orbit_tracking.core.estimation.estimator import estimate
 from orbit_tracking.core.estimation.knots import KnotSelection
 from orbit_tracking.core.estimation.results import Estimate, TargetSolution
 from orbit_tracking.core.estimation.windows import (
@@ -283,3 +284,39 @@ def test_write_trajectory_csv_names_the_offending_shapes(tmp_path):
         write_trajectory_csv(
             tmp_path / 't.csv', np.zeros(3), np.zeros((3, 5)), np.zeros((3, 6, 6))
         )
+
+
+# -- a window whose data stop short of an edge ----------------------------------------------
+
+
+@pytest.mark.parametrize('cut', [0.3, 1.5])
+def test_a_window_is_solved_over_the_span_its_data_cover_when_they_stop_short(short_pass, cut):
+    """Station rows that end ``cut`` s before the window's end (a restarted estimator, a pass
+    whose data stop): beyond ``edge_gap`` (0.5 s) the window is solved over the span they
+    cover, and says so; within it the window keeps its span. Either way the states agree
+    with truth within their sigma."""
+    res, _ests, _spans = short_pass
+    obs = Observations.from_simulation(res)
+    cfg = EstimatorConfig(use_telemetry=False)
+    last = max(float(s.table.time[-1]) for s in obs.window(0.0, 12.0 - cut).stations)
+    e = estimate(obs.window(0.0, 12.0 - cut), 0.0, 12.0, cfg)
+    assert e.success, e.message
+    if cut > cfg.edge_gap:
+        assert (e.t0, e.t1) == (0.0, last)
+        assert f'solved over [0.00, {last:.2f}] s' in e.message
+    else:
+        assert (e.t0, e.t1) == (0.0, 12.0) and 'solved over' not in e.message
+    sol = e.targets[0]
+    t = output_times(sol.t0, sol.t1, 0.5)
+    x, cov = sol.states(t)
+    truth = res.truth[0]
+    ep = x[:, :3] - hermite_states(truth.time, truth.position, truth.velocity, t)
+    sig = np.sqrt(np.diagonal(cov, axis1=1, axis2=2))[:, :3]
+    assert np.all(np.abs(ep) <= 5.0 * sig)
+
+
+def test_a_window_whose_data_fill_no_span_is_an_estimation_error(short_pass):
+    res, _ests, _spans = short_pass
+    obs = Observations.from_simulation(res).window(5.0, 5.0)
+    with pytest.raises(EstimationError, match='span only'):
+        estimate(obs, 0.0, 12.0, EstimatorConfig(use_telemetry=False))

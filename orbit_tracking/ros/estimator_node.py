@@ -271,6 +271,17 @@ class EstimatorNode(StationInputs):
                 min_value=0.0,
                 max_value=1e6,
             ),
+            edge_gap=declare(
+                self,
+                'edge_gap',
+                0.5,
+                'A window whose station rows and telemetry stop more than this many seconds '
+                'short of its start or end (a restart, the end of the data) is solved over '
+                'the span they cover [s].',
+                read_only=True,
+                min_value=1e-3,
+                max_value=1e6,
+            ),
             max_chi2_dof=declare(
                 self,
                 'max_chi2_dof',

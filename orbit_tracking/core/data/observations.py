@@ -122,6 +122,15 @@ class Observations:
             return (float('nan'), float('nan'))
         return (float(min(t[0] for t in ts)), float(max(t[-1] for t in ts)))
 
+    def measured_span(self) -> tuple[float, float]:
+        """Earliest and latest epoch of any station row or telemetry sample: what the
+        estimator fits to (fixes only start it). (nan, nan) if there is none."""
+        ts = [s.table.time for s in self.stations if len(s.table)]
+        ts += [v.time for v in self.telemetry.values() if len(v)]
+        if not ts:
+            return (float('nan'), float('nan'))
+        return (float(min(np.min(t) for t in ts)), float(max(np.max(t) for t in ts)))
+
     def window(self, t0: float, t1: float) -> Observations:
         """Rows with ``t0 <= t <= t1``."""
         st = []

@@ -110,6 +110,11 @@ class EstimatorConfig:
         to second order by more than this many of its sigmas, the linearised covariance
         is published as its largest sigma in every direction
         (:mod:`~orbit_tracking.core.estimation.linearity`); 0 = never.
+    edge_gap : float
+        A window whose station rows and telemetry start more than this many seconds after
+        its start (or end as long before its end) is solved over the span they cover: the
+        trajectory beyond the last datum is not determined by it (a restart, a loss of
+        all data at the end of a pass), and the next or previous window covers it.
     estimate_telemetry_noise : bool
         Re-estimate the telemetry white-noise levels from the residuals.
     max_chi2_dof : float
@@ -180,6 +185,7 @@ class EstimatorConfig:
     telemetry_velocity_error_spacing: float = 20.0
     telemetry_velocity_alpha: float = 1e-3
     nonlinear_sigma: float = 1.0
+    edge_gap: float = 0.5
     estimate_telemetry_noise: bool = True
     estimate_station_noise: bool = True
     max_chi2_dof: float = 1.5
@@ -237,6 +243,8 @@ class EstimatorConfig:
             raise ValueError('telemetry_velocity_error_spacing must be > 0')
         if not 0.0 < self.telemetry_velocity_alpha < 1.0:
             raise ValueError('telemetry_velocity_alpha must lie in (0, 1)')
+        if not self.edge_gap > 0.0:
+            raise ValueError(f'edge_gap must be > 0; got {self.edge_gap}')
         if not self.nonlinear_sigma >= 0.0:
             raise ValueError(f'nonlinear_sigma must be >= 0; got {self.nonlinear_sigma}')
         if self.thrust_along_velocity < 0.0 or self.thrust_grid <= 0.0 or self.gm <= 0.0:

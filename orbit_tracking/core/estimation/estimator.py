@@ -495,6 +495,48 @@ def estimate(
         cannot fail the others' window).
     """
     cfg = cfg or EstimatorConfig()
+    fitted = obs if cfg.use_telemetry else obs.without_telemetry()
+    t0, t1, edge_note = _measured_edges(fitted, t0, t1, cfg.edge_gap)
+    first = _estimate_retried(obs, t0, t1, cfg, target_ids, previous, frame)
+    if edge_note:
+        first = replace(first, message=f'{first.message}; {edge_note}')
+    return first
+
+
+def _measured_edges(
+    obs: Observations, t0: float, t1: float, edge_gap: float
+) -> tuple[float, float, str]:
+    """[t0, t1] narrowed to the station rows and telemetry in it where they stop more than
+    ``edge_gap`` s short of an edge (``EstimatorConfig.edge_gap``), and a note saying so."""
+    a, b = obs.window(t0, t1).measured_span()
+    if not (math.isfinite(a) and math.isfinite(b)):
+        return t0, t1, ''  # no data: the attempt says so
+    lo = a if a - t0 > edge_gap else t0
+    hi = b if t1 - b > edge_gap else t1
+    if (lo, hi) == (t0, t1):
+        return t0, t1, ''
+    if not hi > lo:
+        raise EstimationError(
+            f'window [{t0:.3f}, {t1:.3f}]: its station rows and telemetry span only '
+            f'{a:.3f}-{b:.3f} s'
+        )
+    empty = [f'{x:.2f}-{y:.2f} s' for x, y in ((t0, lo), (hi, t1)) if y > x]
+    return lo, hi, (
+        f'no station rows or telemetry in {" and ".join(empty)} of the window: solved over '
+        f'[{lo:.2f}, {hi:.2f}] s'
+    )
+
+
+def _estimate_retried(
+    obs: Observations,
+    t0: float,
+    t1: float,
+    cfg: EstimatorConfig,
+    target_ids: Sequence[int] | None,
+    previous: Mapping[int, TargetSolution] | None,
+    frame: tuple[FloatArray, FloatArray] | None,
+) -> Estimate:
+    """The first attempt, then the safer settings until one is a success (:func:`estimate`)."""
     first = _attempt(obs, t0, t1, cfg, target_ids, previous, frame)
     if first.success or not cfg.retry:
         return first
