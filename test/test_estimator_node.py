@@ -317,7 +317,9 @@ def test_estimator_node_solves_windows_from_a_live_pass_close_to_truth(
     spin_until(rclpy_node, lambda: sim.poll() is not None, 20, 'the simulator to finish')
     spin_until(
         rclpy_node,
-        lambda: bool(diags) and float(diags[-1]['newest_data_time_s']) > 29.9,
+        # the pass's last epoch is 30.0 s (stations with an epoch offset stop before it);
+        # solving on an earlier newest stamp would end the second window short of it
+        lambda: bool(diags) and float(diags[-1]['newest_data_time_s']) >= 30.0 - 1e-6,
         20,
         lambda: f'the node to read the whole pass; last diagnostics {diags[-1:]}',
     )
