@@ -24,6 +24,10 @@ def guarded(
     try:
         fn(*args)
     except Exception as exc:
+        if not node.context.ok():
+            # shutting down (SIGINT): a callback that was running when the context went
+            # invalid cannot publish any more; that is the end of the node, not a bug
+            return
         counts['internal_error'] += 1
         node.get_logger().error(
             f'{what}: internal error {exc!r} ({counts["internal_error"]} so far)\n'
