@@ -8,7 +8,8 @@ takes anything with its three tables, so this module does not depend on the simu
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import math
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -92,6 +93,18 @@ def _cut_states(s: TargetStates, mask: NDArray[np.bool_]) -> TargetStates:
     )
 
 
+def _span(
+    times: Iterable[NDArray[np.float64]], t0: float = -math.inf, t1: float = math.inf
+) -> tuple[float, float]:
+    """Earliest and latest of ``times`` in [t0, t1]; (nan, nan) if none is."""
+    lo, hi = math.inf, -math.inf
+    for t in times:
+        t = t[(t >= t0) & (t <= t1)]
+        if t.size:
+            lo, hi = min(lo, float(t.min())), max(hi, float(t.max()))
+    return (lo, hi) if lo <= hi else (math.nan, math.nan)
+
+
 @dataclass(frozen=True)
 class Observations:
     """Everything measured about the targets (times in scenario / TimeBase seconds).
@@ -115,21 +128,11 @@ class Observations:
             ids |= {int(i) for i in np.unique(s.table.target_id)}
         return sorted(ids)
 
-    def time_span(self) -> tuple[float, float]:
-        """Earliest and latest epoch of any station measurement (nan, nan if none)."""
-        ts = [s.table.time for s in self.stations if len(s.table)]
-        if not ts:
-            return (float('nan'), float('nan'))
-        return (float(min(t[0] for t in ts)), float(max(t[-1] for t in ts)))
-
-    def measured_span(self) -> tuple[float, float]:
-        """Earliest and latest epoch of any station row or telemetry sample: what the
-        estimator fits to (fixes only start it). (nan, nan) if there is none."""
-        ts = [s.table.time for s in self.stations if len(s.table)]
-        ts += [v.time for v in self.telemetry.values() if len(v)]
-        if not ts:
-            return (float('nan'), float('nan'))
-        return (float(min(np.min(t) for t in ts)), float(max(np.max(t) for t in ts)))
+    def measured_span(self, t0: float = -math.inf, t1: float = math.inf) -> tuple[float, float]:
+        """Earliest and latest epoch in [t0, t1] of any station row or telemetry sample:
+        what the estimator fits to (fixes only start it). (nan, nan) if there is none."""
+        tel = [v.time for v in self.telemetry.values()]
+        return _span([*(s.table.time for s in self.stations), *tel], t0, t1)
 
     def window(self, t0: float, t1: float) -> Observations:
         """Rows with ``t0 <= t <= t1``."""

@@ -508,7 +508,7 @@ def _measured_edges(
 ) -> tuple[float, float, str]:
     """[t0, t1] narrowed to the station rows and telemetry in it where they stop more than
     ``edge_gap`` s short of an edge (``EstimatorConfig.edge_gap``), and a note saying so."""
-    a, b = obs.window(t0, t1).measured_span()
+    a, b = obs.measured_span(t0, t1)
     if not (math.isfinite(a) and math.isfinite(b)):
         return t0, t1, ''  # no data: the attempt says so
     lo = a if a - t0 > edge_gap else t0
@@ -521,10 +521,11 @@ def _measured_edges(
             f'{a:.3f}-{b:.3f} s'
         )
     empty = [f'{x:.2f}-{y:.2f} s' for x, y in ((t0, lo), (hi, t1)) if y > x]
-    return lo, hi, (
+    note = (
         f'no station rows or telemetry in {" and ".join(empty)} of the window: solved over '
         f'[{lo:.2f}, {hi:.2f}] s'
     )
+    return lo, hi, note
 
 
 def _estimate_retried(
