@@ -18,6 +18,7 @@ mark is removed then).
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from orbit_tracking.core.estimation.config import EstimatorConfig
@@ -91,3 +92,25 @@ def test_the_velocity_error_options_are_checked():
         EstimatorConfig(telemetry_velocity_error_spacing=0.0)
     with pytest.raises(ValueError, match='telemetry_velocity_alpha'):
         EstimatorConfig(telemetry_velocity_alpha=1.0)
+
+
+@pytest.mark.timeout(120)
+def test_the_size_of_the_telemetry_error_spline_comes_from_the_data():
+    """White telemetry has no slow error: its error spline shrinks far below the declared
+    sigma; a drift of tens of metres keeps it at about its size. Held at the declared sigma
+    (``estimate_telemetry_error: false``) it stays there, and the message says which."""
+    sizes = {}
+    for model in ('white', 'drift'):
+        case = _case('ascent', SEED, SPAN, model)
+        declared = float(np.median(case.obs_est.telemetry[0].position_sigma))
+        est = estimate(case.obs_est, 0.0, SPAN, EstimatorConfig())
+        assert est.success, est.message
+        sigma = est.targets[0].telemetry_error_sigma
+        assert sigma is not None
+        assert f'error spline sigma {sigma:.3g} m (declared {declared:.3g} m)' in est.message
+        sizes[model] = sigma / declared
+        held = estimate(case.obs_est, 0.0, SPAN, EstimatorConfig(estimate_telemetry_error=False))
+        assert held.targets[0].telemetry_error_sigma == pytest.approx(declared)
+        assert 'error spline sigma' not in held.message
+    assert sizes['white'] < 0.1, sizes
+    assert 0.5 < sizes['drift'] < 2.0, sizes

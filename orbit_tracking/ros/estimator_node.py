@@ -259,6 +259,15 @@ class EstimatorNode(StationInputs):
                 'window by a score test on the velocity residuals).',
                 read_only=True,
             ),
+            estimate_telemetry_error=declare(
+                self,
+                'estimate_telemetry_error',
+                True,
+                'Estimate the size of the telemetry error spline from the data (white '
+                'telemetry then counts in full); false holds it at the declared position '
+                'sigma.',
+                read_only=True,
+            ),
             nonlinear_sigma=declare(
                 self,
                 'nonlinear_sigma',

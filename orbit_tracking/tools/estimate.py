@@ -159,6 +159,12 @@ def _window_summary(e: Estimate) -> dict[str, object]:
             for tid, sol in sorted(e.targets.items())
             if sol.telemetry_velocity
         },
+        # the size of the telemetry error spline [m] (estimated from the data by default)
+        'telemetry_error_sigma_m': {
+            int(tid): float(sol.telemetry_error_sigma)
+            for tid, sol in sorted(e.targets.items())
+            if sol.telemetry_error_sigma is not None
+        },
         # where the covariance was made isotropic (beyond the linear range)
         'isotropic_spans': {
             int(tid): [[float(a), float(b)] for a, b in sol.isotropic_spans]

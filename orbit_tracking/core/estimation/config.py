@@ -117,6 +117,10 @@ class EstimatorConfig:
         all data at the end of a pass), and the next or previous window covers it.
     estimate_telemetry_noise : bool
         Re-estimate the telemetry white-noise levels from the residuals.
+    estimate_telemetry_error : bool
+        Re-estimate the size (prior sigma) of the telemetry error spline from the data
+        (an EM step of its variance component per solve round) instead of holding it at
+        the declared position sigma.
     max_chi2_dof : float
         Largest chi-square per degree of freedom of a window that is a success (with few
         degrees of freedom ``1 + 5 sqrt(2 / dof)`` if larger; see
@@ -187,6 +191,7 @@ class EstimatorConfig:
     nonlinear_sigma: float = 1.0
     edge_gap: float = 0.5
     estimate_telemetry_noise: bool = True
+    estimate_telemetry_error: bool = True
     estimate_station_noise: bool = True
     max_chi2_dof: float = 1.5
     retry: bool = True

@@ -391,6 +391,7 @@ def _estimate_once(
                 prob, tid, s.trajectory, out.beta[o : o + nt], cov[o : o + nt, o : o + nt], cfg
             ),
             '' if tel is None else ('separate' if tel.w_axis is not None else 'derivative'),
+            None if tel is None else tel.prior_sigma[0],
         )
     factors = {
         (b.station, f): float(b.factor[j])
@@ -424,6 +425,12 @@ def _estimate_once(
     if verdict.covariance_scale != near:
         msg += f'; covariance scaled by the misfit ({verdict.covariance_scale / near:.3g})'
     msg += isotropic_note(targets, t0, t1, cfg.nonlinear_sigma)
+    if cfg.estimate_telemetry_error:
+        msg += ''.join(
+            f'; telemetry {tb.target} error spline sigma {tb.prior_sigma[0]:.3g} m '
+            f'(declared {tb.declared_sigma:.3g} m)'
+            for tb in prob.telemetry
+        )
     if factors:
         msg += '; sigmas used larger than declared: ' + ', '.join(
             f'{st} {f} x{k:.2f}' for (st, f), k in sorted(factors.items())

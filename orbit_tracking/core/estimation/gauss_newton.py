@@ -319,6 +319,47 @@ def _reestimate_telemetry_noise(prob: Problem, beta: FloatArray) -> bool:
     return changed
 
 
+ERROR_SIGMA_RANGE = (1e-3, 10.0)
+"""The telemetry error spline's prior sigma stays within these multiples of the declared
+position sigma."""
+
+
+def _reestimate_error_sigma(prob: Problem, beta: FloatArray) -> bool:
+    """The prior sigma of every telemetry error spline ``e`` (a random effect, zero mean)
+    from the data, by MacKay's evidence update of its variance component: ``sigma^2 =
+    |e|^2 / gamma``, ``gamma = n_e - tr(C_ee) / sigma^2`` the number of coefficients the
+    data determine (``e`` the estimated coefficients, ``C_ee`` their posterior
+    covariance); at most a factor of 10 per round. White telemetry drives it down (its
+    positions then count in full, instead of being half absorbed by an error allowance
+    they do not have); a drift as large as the declared sigma or larger keeps or raises
+    it. True when a sigma moved by more than 5 %."""
+    if not prob.telemetry:
+        return False
+    _, jac, _ = prob.evaluate(beta, True)
+    if jac is None:
+        return False
+    normal = (jac.T @ jac).toarray()
+    d = np.sqrt(np.maximum(np.diag(normal), 1e-300))
+    try:
+        cov = sla.cho_solve(sla.cho_factor(normal / d[:, None] / d[None, :]), np.eye(prob.n))
+    except np.linalg.LinAlgError:
+        return False
+    cov = cov / d[:, None] / d[None, :]
+    changed = False
+    for tb in prob.telemetry:
+        sl = slice(tb.offset, tb.offset + 3 * tb.axis.n_coef)
+        e = beta[sl]
+        old = tb.prior_sigma[0]
+        gamma = e.size - float(np.trace(cov[sl, sl])) / old**2
+        new = math.sqrt(float(e @ e) / gamma) if gamma > 0.5 else 0.0
+        lo, hi = (k * tb.declared_sigma for k in ERROR_SIGMA_RANGE)
+        new = min(max(new, old / 10.0, lo), 10.0 * old, hi)
+        if abs(new - old) > 0.05 * old:
+            changed = True
+        tb.prior_sigma = (new, tb.prior_sigma[1])
+    return changed
+
+
 NOISE_MIN_VALUES = 30
 """A station field's noise level is re-estimated from at least this many residuals."""
 
@@ -535,6 +576,8 @@ def solve(
         changed = False
         if cfg.estimate_telemetry_noise and prob.telemetry:
             changed |= _reestimate_telemetry_noise(prob, out.beta)
+        if cfg.estimate_telemetry_error and prob.telemetry:
+            changed |= _reestimate_error_sigma(prob, out.beta)
         if cfg.estimate_station_noise:
             changed |= reestimate_station_noise(prob, out.beta)
         if cfg.gate_sigma > 0.0:

@@ -109,6 +109,7 @@ class _TelemetryBlock:
     # piecewise-linear spline per axis, coefficients after those of e (None: e' only)
     w_axis: SplineAxis | None = None
     w_design: sp.csr_matrix | None = None  # (3m, 3 n_w)
+    declared_sigma: float = 1.0  # the telemetry's declared position sigma (median) [m]
 
     @property
     def n_error(self) -> int:
@@ -298,6 +299,7 @@ class Problem:
                         None
                         if w_axis is None
                         else sp.kron(w_axis.design(tel.time, 0), i3, format='csr'),
+                        float(np.median(tel.position_sigma)),
                     )
                 )
                 n += self.telemetry[-1].n_error

@@ -34,7 +34,9 @@ class TargetSolution:
     are where that covariance is no statement about the error (the
     measurements are not linear over one sigma there:
     :func:`~orbit_tracking.core.estimation.linearity.nonlinear_spans`); :meth:`states`
-    gives the largest sigma in every direction there.
+    gives the largest sigma in every direction there. ``telemetry_error_sigma`` is the
+    prior sigma [m] the telemetry error spline ended with (the declared position sigma,
+    or its size estimated from the data; None without telemetry fused).
     """
 
     target_id: int
@@ -47,6 +49,7 @@ class TargetSolution:
     telemetry_noise: tuple[float, float] | None = None
     isotropic_spans: tuple[Segment, ...] = ()
     telemetry_velocity: str = ''
+    telemetry_error_sigma: float | None = None
 
     @property
     def t0(self) -> float:
