@@ -138,6 +138,7 @@ def test_noise_free_measurements_recover_a_spline_truth_through_estimate():
         use_telemetry=False,
         detect_segments=False,
         convergence_decrement=1e-12,  # noise-free: to rounding, not to 0.001 sigma
+        jerk_prior=False,  # a prior is a (small) bias: this checks the measurement model
     )
     est = estimate(obs, 0.0, 20.0, cfg)
     assert est.success, est.message

@@ -114,3 +114,30 @@ def test_the_size_of_the_telemetry_error_spline_comes_from_the_data():
         assert 'error spline sigma' not in held.message
     assert sizes['white'] < 0.1, sizes
     assert 0.5 < sizes['drift'] < 2.0, sizes
+
+
+@pytest.mark.timeout(120)
+def test_the_white_jerk_prior_bridges_a_turn_in_a_gps_outage():
+    """An aircraft turning at 2-3 g through a 30 s GPS outage with one ship radar left:
+    the white-jerk prior (density from the data) holds the trajectory where the radar
+    alone leaves the spline's knots free, and its sigmas still cover the error."""
+    case = _case('aircraft', 6, 60.0)
+    inside = (case.truth_t > 23.0) & (case.truth_t < 50.0)
+    t, truth = case.truth_t[inside], case.truth_x[inside, :3]
+    rms, nees = {}, {}
+    for on in (True, False):
+        est = estimate(case.obs_est, 0.0, 60.0, EstimatorConfig(jerk_prior=on))
+        assert est.success, est.message
+        x, cov = est.targets[0].states(t)
+        err = x[:, :3] - truth
+        rms[on] = float(np.sqrt(np.mean(np.sum(err**2, axis=1))))
+        nees[on] = float(
+            np.mean(np.einsum('ni,nij,nj->n', err, np.linalg.inv(cov[:, :3, :3]), err))
+        )
+        q = est.targets[0].jerk_density
+        assert (q is not None) == on
+        assert ('white-jerk prior' in est.message) == on
+        if on:
+            assert q is not None and 0.1 < q < 100.0, q
+    assert rms[True] < 0.6 * rms[False], rms
+    assert nees[True] < 6.0, nees

@@ -268,6 +268,15 @@ class EstimatorNode(StationInputs):
                 'sigma.',
                 read_only=True,
             ),
+            jerk_prior=declare(
+                self,
+                'jerk_prior',
+                True,
+                'A white-jerk prior on the trajectory, its density estimated from the data in '
+                'every window: it bridges spans the measurements hardly determine (a turn in a '
+                'GPS outage) as a Kalman smoother motion model would.',
+                read_only=True,
+            ),
             nonlinear_sigma=declare(
                 self,
                 'nonlinear_sigma',

@@ -165,6 +165,12 @@ def _window_summary(e: Estimate) -> dict[str, object]:
             for tid, sol in sorted(e.targets.items())
             if sol.telemetry_error_sigma is not None
         },
+        # the density of the white-jerk prior [m^2/s^5] estimated per target
+        'jerk_density': {
+            int(tid): float(sol.jerk_density)
+            for tid, sol in sorted(e.targets.items())
+            if sol.jerk_density is not None
+        },
         # where the covariance was made isotropic (beyond the linear range)
         'isotropic_spans': {
             int(tid): [[float(a), float(b)] for a, b in sol.isotropic_spans]

@@ -162,6 +162,13 @@ class EstimatorConfig:
         target separate the satellites' biases from its trajectory.
     thrust_grid : float
         Spacing [s] of those pseudo-measurements.
+    jerk_prior : bool
+        A white-jerk prior on every trajectory, ``|p'''|^2 / q`` integrated over the
+        window, with its density ``q`` [m^2/s^5] estimated from the data (an evidence
+        update per solve round): what bridges a span the measurements hardly determine (a
+        telemetry outage with a turn in it) the way a Kalman smoother's motion model does.
+    jerk_grid : float
+        Quadrature step [s] of that integral.
     gm : float
         Gravitational parameter [m^3/s^2] of that constraint.
     segments : tuple of (start, end)
@@ -203,6 +210,8 @@ class EstimatorConfig:
     bias_observability: float = 0.9
     thrust_along_velocity: float = 0.0
     thrust_grid: float = 0.5
+    jerk_prior: bool = True
+    jerk_grid: float = 0.25
     gm: float = 3.986005e14
     segments: tuple[Segment, ...] = ()
     detect_segments: bool = True

@@ -392,6 +392,7 @@ def _estimate_once(
             ),
             '' if tel is None else ('separate' if tel.w_axis is not None else 'derivative'),
             None if tel is None else tel.prior_sigma[0],
+            prob.jerk_q.get(tid),
         )
     factors = {
         (b.station, f): float(b.factor[j])
@@ -425,6 +426,11 @@ def _estimate_once(
     if verdict.covariance_scale != near:
         msg += f'; covariance scaled by the misfit ({verdict.covariance_scale / near:.3g})'
     msg += isotropic_note(targets, t0, t1, cfg.nonlinear_sigma)
+    msg += ''.join(
+        f'; target {tid} white-jerk prior {q:.3g} m^2/s^5'
+        for tid, q in sorted(prob.jerk_q.items())
+        if q is not None
+    )
     if cfg.estimate_telemetry_error:
         msg += ''.join(
             f'; telemetry {tb.target} error spline sigma {tb.prior_sigma[0]:.3g} m '

@@ -241,6 +241,7 @@ def rebuild(
     separate.update(tel_separate or {})
     new = Problem(obs, sols, cfg, t0, t1, tel_axes, separate, prob.tel_events)
     new.gated = prob.gated
+    new.jerk_q.update({tid: q for tid, q in prob.jerk_q.items() if tid in new.jerk_q})
     new.gate_refused = prob.gate_refused
     beta_new = np.zeros(new.n)
     for tid, (traj, coef) in sols.items():

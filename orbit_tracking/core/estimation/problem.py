@@ -8,6 +8,7 @@ the solver is in :mod:`~orbit_tracking.core.estimation.gauss_newton`."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -29,6 +30,7 @@ __all__ = [
     'GateUnits',
     'Problem',
     'Tag',
+    'jerk_rows',
     'thrust_normal',
     'velocity_error_axis',
 ]
@@ -60,6 +62,7 @@ _ROWS_PER_ENTRY = {
     'fix': 3,
     'thrust': 3,
     'bias_prior': 1,
+    'jerk_prior': 1,
 }
 
 
@@ -186,6 +189,37 @@ def velocity_error_axis(
     and ``e'``, which can, share that)."""
     knots = uniform_knots(t0, t1, cfg.telemetry_velocity_error_spacing, events=events, degree=2)
     return SplineAxis.from_interior(knots, t0, t1, 1)
+
+
+JERK_EVENT_MARGIN = 2.0
+"""Seconds on each side of an event (a knot repeated on every axis: the acceleration jumps
+there) left out of the white-jerk prior: thrust builds up and tails off around it with a
+jerk far beyond the window's average."""
+
+
+def jerk_rows(traj: SplineTrajectory, t0: float, t1: float, step: float) -> FloatArray:
+    """Rows ``M`` (rank of the penalty, n_coef) with ``|M c|^2`` the integral of the squared
+    jerk of ``traj`` over [t0, t1] (midpoint rule at ``step``), leaving out
+    :data:`JERK_EVENT_MARGIN` around its events: the square root of the penalty's nonzero
+    eigen-part, so that as pseudo-measurements they count as many degrees of freedom as
+    the penalty has rank."""
+    n = max(int(math.ceil((t1 - t0) / step)), 1)
+    h = (t1 - t0) / n
+    tg = t0 + h * (np.arange(n) + 0.5)
+    repeated = []
+    for ax in traj.axes:
+        k, counts = np.unique(ax.interior, return_counts=True)
+        repeated.append(set(k[counts > 1].tolist()))
+    events = np.array(sorted(set.intersection(*repeated)), dtype=float)
+    if events.size:
+        tg = tg[np.min(np.abs(tg[:, None] - events[None, :]), axis=1) > JERK_EVENT_MARGIN]
+    if not tg.size:
+        return np.zeros((0, traj.n_coef))
+    d3 = traj.world_design(tg, 3)
+    pen = h * (d3.T @ d3).toarray()
+    w, v = np.linalg.eigh(0.5 * (pen + pen.T))
+    keep = w > 1e-10 * max(float(w.max()), 1e-300)
+    return np.asarray(np.sqrt(w[keep])[:, None] * v[:, keep].T)
 
 
 def _error_prior_sigma(tb: _TelemetryBlock) -> FloatArray:
@@ -320,6 +354,14 @@ class Problem:
                         np.asarray(np.isfinite(fx.position).all(axis=1)),
                     )
                 )
+        # the white-jerk prior: per target, rows M with |M c|^2 = int |p'''|^2 dt, and its
+        # density q (None until the first solve has estimated it: no rows before)
+        self.jerk: dict[int, FloatArray] = {}
+        self.jerk_q: dict[int, float | None] = {}
+        if cfg.jerk_prior:
+            for tid, traj in self.trajs.items():
+                self.jerk[tid] = jerk_rows(traj, t0, t1, cfg.jerk_grid)
+                self.jerk_q[tid] = None
         # the thrust-along-velocity constraint: designs on a grid per target
         self.dynamics: list[tuple[int, sp.csr_matrix, sp.csr_matrix, sp.csr_matrix]] = []
         if cfg.thrust_along_velocity > 0.0:
@@ -507,6 +549,17 @@ class Problem:
                 jac.append(_shift(jm, self.offsets[tid], self.n))
                 z = np.zeros((c.size, 3))
                 rows.append((-1, np.zeros(c.size), z, z, False))
+        for tid, mj in self.jerk.items():
+            qj = self.jerk_q[tid]
+            if qj is None or not mj.shape[0]:
+                continue
+            w = 1.0 / math.sqrt(qj)
+            res.append(-w * (mj @ self._coef(beta, tid)))
+            tags.append(('jerk_prior', tid, np.ones(mj.shape[0], dtype=bool)))
+            if jacobian:
+                jac.append(_shift(sp.csr_matrix(w * mj), self.offsets[tid], self.n))
+                z = np.zeros((mj.shape[0], 3))
+                rows.append((-1, np.zeros(mj.shape[0]), z, z, False))
         if self.biases:
             bvals = beta[self.bias_offset : self.bias_offset + len(self.biases)]
             res.append((self.bias_prior - bvals) / self.bias_sigma)

@@ -37,6 +37,8 @@ class TargetSolution:
     gives the largest sigma in every direction there. ``telemetry_error_sigma`` is the
     prior sigma [m] the telemetry error spline ended with (the declared position sigma,
     or its size estimated from the data; None without telemetry fused).
+    ``jerk_density`` is the white-jerk prior's density [m^2/s^5] estimated for this
+    trajectory (None without the prior).
     """
 
     target_id: int
@@ -50,6 +52,7 @@ class TargetSolution:
     isotropic_spans: tuple[Segment, ...] = ()
     telemetry_velocity: str = ''
     telemetry_error_sigma: float | None = None
+    jerk_density: float | None = None
 
     @property
     def t0(self) -> float:
