@@ -1,0 +1,158 @@
+"""Sizes of a window's zero-mean priors estimated from its data (issue 14).
+
+Two priors of :class:`~orbit_tracking.core.estimation.problem.Problem` have a size no one
+declares well: the telemetry error spline ``e`` (declared: the telemetry's position
+sigma, which for white telemetry is no slow error at all) and the white-jerk prior of every
+trajectory (a density nobody declares). Both are variance components of a Gaussian model,
+and :func:`reestimate_priors` sets them by MacKay's evidence update (type-II maximum
+likelihood) between the solve rounds of
+:func:`~orbit_tracking.core.estimation.gauss_newton.solve`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import scipy.linalg as sla
+from numpy.typing import NDArray
+
+from orbit_tracking.core.estimation.config import EstimatorConfig
+from orbit_tracking.core.estimation.problem import Problem
+
+__all__ = ['ERROR_SIGMA_RANGE', 'JERK_Q_FLOOR', 'reestimate_priors']
+
+FloatArray = NDArray[np.float64]
+
+
+ERROR_SIGMA_RANGE = (1e-3, 10.0)
+"""The telemetry error spline's prior sigma stays within these multiples of the declared
+position sigma."""
+
+
+def reestimate_priors(prob: Problem, beta: FloatArray, cfg: EstimatorConfig) -> bool:
+    """The sizes of the window's zero-mean priors from the data, by MacKay's evidence
+    update of a variance component: for a prior ``|M x|^2 / s^2`` of rank ``r`` on some
+    unknowns ``x``, ``s^2 = |M x|^2 / gamma`` with ``gamma = r - tr(M C M^T) / s^2`` the
+    number of its directions the data determine (``C`` the posterior covariance of
+    ``x``); at most a factor of 10 per round once set.
+
+    - The telemetry error spline ``e`` (``estimate_telemetry_error``): white telemetry
+      drives its sigma down (its positions then count in full, instead of being half
+      absorbed by an error allowance they do not have); a drift as large as the declared
+      sigma or larger keeps or raises it (within :data:`ERROR_SIGMA_RANGE`).
+    - The white-jerk density ``q`` of every trajectory (``jerk_prior``), iterated to its
+      fixed point on the linearised problem (:func:`_jerk_densities`).
+
+    True when a size moved by more than 5 %."""
+    tels = prob.telemetry if cfg.estimate_telemetry_error else []
+    if not tels and not prob.jerk:
+        return False
+    r, jac, _ = prob.evaluate(beta, True)
+    if jac is None:
+        return False
+    normal = (jac.T @ jac).toarray()
+    changed = False
+    if tels:
+        d = np.sqrt(np.maximum(np.diag(normal), 1e-300))
+        ns = normal / d[:, None] / d[None, :]
+        ns[np.diag_indices_from(ns)] += 1e-10
+        try:
+            fac = sla.cho_factor(ns)
+        except np.linalg.LinAlgError:
+            tels = []
+    for tb in tels:
+        sl = slice(tb.offset, tb.offset + 3 * tb.axis.n_coef)
+        unit = np.zeros((prob.n, sl.stop - sl.start))
+        unit[sl] = np.eye(sl.stop - sl.start)
+        c_ee = (sla.cho_solve(fac, unit) / d[:, None])[sl] / d[None, sl]
+        e = beta[sl]
+        old = tb.prior_sigma[0]
+        gamma = e.size - float(np.trace(c_ee)) / old**2
+        new = math.sqrt(float(e @ e) / gamma) if gamma > 0.5 else 0.0
+        lo, hi = (k * tb.declared_sigma for k in ERROR_SIGMA_RANGE)
+        new = min(max(new, old / 10.0, lo), 10.0 * old, hi)
+        changed |= abs(new - old) > 0.05 * old
+        tb.prior_sigma = (new, tb.prior_sigma[1])
+    changed |= _jerk_densities(prob, beta, normal, np.asarray(jac.T @ r))
+    return changed
+
+
+def _jerk_densities(prob: Problem, beta: FloatArray, normal: FloatArray, grad: FloatArray) -> bool:
+    """The white-jerk densities of every trajectory, iterated to their fixed point on the
+    problem linearised at ``beta`` (one evidence update per solve would leave them far
+    off): the data's normal matrix ``N_d`` and gradient ``g_d`` without the jerk rows, and
+    for each target in turn the pencil ``(P, N_d + P / q0)`` diagonalised once (``P`` its
+    penalty, ``q0`` its density so far, the other targets' priors held), in which the
+    solution, ``tr(P C)`` and the penalty are sums over its eigenvalues for any ``q``. A
+    density not set yet starts from the mean squared jerk of ``beta``."""
+    blocks = []
+    for tid, mj in prob.jerk.items():
+        if mj.shape[0]:
+            o = prob.offsets[tid]
+            sl = slice(o, o + prob.trajs[tid].n_coef)
+            blocks.append((tid, sl, mj.shape[0], mj.T @ mj))
+    if not blocks:
+        return False
+    n_d, g_d = normal.copy(), grad.copy()
+    q: dict[int, float] = {}
+    for tid, sl, rank, pen in blocks:
+        old = prob.jerk_q[tid]
+        if old is not None:  # take the prior's rows out again
+            n_d[sl, sl] -= pen / old
+            g_d[sl] += pen @ beta[sl] / old
+        q[tid] = (
+            old if old is not None else max(float(beta[sl] @ pen @ beta[sl]) / rank, JERK_Q_FLOOR)
+        )
+    for _ in range(2 if len(blocks) > 1 else 1):
+        for tid, sl, rank, pen in blocks:
+            q0 = q[tid]
+            a = n_d.copy()
+            for other, sl2, _, pen2 in blocks:
+                a[sl2, sl2] += pen2 / q[other]
+            p_full = np.zeros_like(a)
+            p_full[sl, sl] = pen / q0
+            rhs = g_d - p_full @ beta  # the gradient at beta with this prior at q0 ...
+            for other, sl2, _, pen2 in blocks:
+                if other != tid:
+                    rhs[sl2] -= pen2 @ beta[sl2] / q[other]
+            d = np.sqrt(np.maximum(np.diag(a), 1e-300))
+            a_s = a / d[:, None] / d[None, :]
+            a_s[np.diag_indices_from(a_s)] += 1e-10
+            try:
+                mu, v = sla.eigh(p_full / d[:, None] / d[None, :], a_s)
+            except (np.linalg.LinAlgError, ValueError):
+                return False
+            mu = np.clip(mu, 0.0, 1.0)
+            u = v.T @ (a_s @ (d * beta))  # beta in the pencil's coordinates
+            w = v.T @ ((rhs + p_full @ beta) / d)  # ... and the data's gradient
+            value = q0
+            for _it in range(JERK_ITERATIONS):
+                ratio = q0 / value  # the prior is P / value = ratio * P / q0
+                den = 1.0 - mu + ratio * mu
+                y = u + (w - ratio * mu * u) / den
+                gamma = rank - ratio * float(np.sum(mu / den))
+                new = q0 * float(np.sum(mu * y**2)) / gamma if gamma > 0.5 else value / 10.0
+                new = min(max(new, value / 10.0, JERK_Q_FLOOR), 10.0 * value)
+                done = abs(math.log(new / value)) < 1e-3
+                value = new
+                if done:
+                    break
+            q[tid] = value
+    changed = False
+    for tid, value in q.items():
+        old = prob.jerk_q[tid]
+        changed |= old is None or abs(value - old) > JERK_Q_TOLERANCE * old
+        prob.jerk_q[tid] = value
+    return changed
+
+
+JERK_Q_TOLERANCE = 0.25
+"""A jerk density that moved by less than this fraction asks for no further solve round
+(the fit hardly depends on it at that level)."""
+
+JERK_ITERATIONS = 200
+"""Most evidence updates of a jerk density per call (each a sum over eigenvalues)."""
+
+JERK_Q_FLOOR = 1e-8
+"""Smallest white-jerk density [m^2/s^5] (a trajectory without any jerk would pin it to 0)."""
