@@ -92,6 +92,9 @@ def test_the_velocity_error_options_are_checked():
         EstimatorConfig(telemetry_velocity_error_spacing=0.0)
     with pytest.raises(ValueError, match='telemetry_velocity_alpha'):
         EstimatorConfig(telemetry_velocity_alpha=1.0)
+    for bad in (0.0, -1.0, float('nan'), 11.0):
+        with pytest.raises(ValueError, match='jerk_grid'):
+            EstimatorConfig(jerk_grid=bad)
 
 
 @pytest.mark.timeout(120)

@@ -248,6 +248,8 @@ class EstimatorConfig:
             raise ValueError(f'robust_scale must be finite and > 0; got {self.robust_scale}')
         if self.telemetry_error_spacing <= 0.0:
             raise ValueError('telemetry_error_spacing must be > 0')
+        if not 0.0 < self.jerk_grid <= 10.0:
+            raise ValueError(f'jerk_grid must lie in (0, 10] s; got {self.jerk_grid}')
         if self.telemetry_velocity_error not in TELEMETRY_VELOCITY_ERRORS:
             raise ValueError(
                 f'telemetry_velocity_error must be one of {TELEMETRY_VELOCITY_ERRORS}; '
