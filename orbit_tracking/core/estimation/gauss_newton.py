@@ -1,8 +1,6 @@
-"""Gauss-Newton with step halving on a window's
-:class:`~orbit_tracking.core.estimation.problem.Problem` (seed 000, eq. 7), the robust
-warm-up and the residual gate that reject gross errors and outliers, the re-estimated
-telemetry noise, and the covariance of the solution (with consider parameters for frozen
-biases).
+"""Gauss-Newton (seed 000, eq. 7) on a window's :class:`.problem.Problem`, the robust
+warm-up and residual gate against gross errors and outliers, the re-estimated noise levels
+(the priors' sizes: :mod:`.priors`) and the covariance (frozen biases as consider ones).
 
 Bad rows are decided in three steps (:func:`solve`):
 

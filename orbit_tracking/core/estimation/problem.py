@@ -20,6 +20,7 @@ from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.estimation.bspline import SplineAxis, SplineTrajectory
 from orbit_tracking.core.estimation.config import EstimatorConfig
 from orbit_tracking.core.estimation.knots import uniform_knots
+from orbit_tracking.core.estimation.motion_rows import jerk_rows, thrust_normal
 from orbit_tracking.core.models.measurements import StationPose, predict, residual
 from orbit_tracking.core.models.systematic import CLOCK, BiasModel
 
@@ -30,7 +31,6 @@ __all__ = [
     'GateUnits',
     'Problem',
     'Tag',
-    'jerk_rows',
     'thrust_normal',
     'velocity_error_axis',
 ]
@@ -146,34 +146,6 @@ def _row_contract(h: FloatArray, design: sp.csr_matrix) -> sp.csr_matrix:
     return (s @ design).tocsr()
 
 
-def thrust_normal(
-    p: FloatArray, v: FloatArray, a: FloatArray, gm: float, jacobian: bool
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-    """``c = (I - u u^T)(a - g(p))`` with ``u = v/|v|`` and ``g = -gm p/|p|^3``: the
-    non-gravitational acceleration normal to the velocity, (m, 3); and its derivatives
-    by p, v and a, (m, 3, 3) each (zeros when ``jacobian`` is False)."""
-    rn = np.linalg.norm(p, axis=1)
-    g = -gm * p / rn[:, None] ** 3
-    f = a - g
-    vn = np.linalg.norm(v, axis=1)
-    u = v / vn[:, None]
-    eye = np.eye(3)
-    proj = eye - np.einsum('mi,mj->mij', u, u)
-    c = np.einsum('mij,mj->mi', proj, f)
-    m = p.shape[0]
-    if not jacobian:
-        z = np.zeros((m, 3, 3))
-        return c, z, z, z
-    dg = -gm * (
-        eye / rn[:, None, None] ** 3 - 3.0 * np.einsum('mi,mj->mij', p, p) / rn[:, None, None] ** 5
-    )
-    jp = -np.einsum('mij,mjk->mik', proj, dg)
-    fm = np.einsum('mj,mjk->mk', f, proj)  # f^T (I - u u^T)
-    fu = np.einsum('mi,mi->m', f, u)
-    jv = -(np.einsum('mi,mk->mik', u, fm) + fu[:, None, None] * proj) / vn[:, None, None]
-    return c, jp, jv, proj
-
-
 VELOCITY_ERROR_PRIOR = 0.1
 """Prior sigma [m/s] of a separate telemetry velocity error's coefficients: weak (the
 velocity rows determine it), only so that a span without telemetry stays regular."""
@@ -189,37 +161,6 @@ def velocity_error_axis(
     and ``e'``, which can, share that)."""
     knots = uniform_knots(t0, t1, cfg.telemetry_velocity_error_spacing, events=events, degree=2)
     return SplineAxis.from_interior(knots, t0, t1, 1)
-
-
-JERK_EVENT_MARGIN = 2.0
-"""Seconds on each side of an event (a knot repeated on every axis: the acceleration jumps
-there) left out of the white-jerk prior: thrust builds up and tails off around it with a
-jerk far beyond the window's average."""
-
-
-def jerk_rows(traj: SplineTrajectory, t0: float, t1: float, step: float) -> FloatArray:
-    """Rows ``M`` (rank of the penalty, n_coef) with ``|M c|^2`` the integral of the squared
-    jerk of ``traj`` over [t0, t1] (midpoint rule at ``step``), leaving out
-    :data:`JERK_EVENT_MARGIN` around its events: the square root of the penalty's nonzero
-    eigen-part, so that as pseudo-measurements they count as many degrees of freedom as
-    the penalty has rank."""
-    n = max(int(math.ceil((t1 - t0) / step)), 1)
-    h = (t1 - t0) / n
-    tg = t0 + h * (np.arange(n) + 0.5)
-    repeated = []
-    for ax in traj.axes:
-        k, counts = np.unique(ax.interior, return_counts=True)
-        repeated.append(set(k[counts > 1].tolist()))
-    events = np.array(sorted(set.intersection(*repeated)), dtype=float)
-    if events.size:
-        tg = tg[np.min(np.abs(tg[:, None] - events[None, :]), axis=1) > JERK_EVENT_MARGIN]
-    if not tg.size:
-        return np.zeros((0, traj.n_coef))
-    d3 = traj.world_design(tg, 3)
-    pen = h * (d3.T @ d3).toarray()
-    w, v = np.linalg.eigh(0.5 * (pen + pen.T))
-    keep = w > 1e-10 * max(float(w.max()), 1e-300)
-    return np.asarray(np.sqrt(w[keep])[:, None] * v[:, keep].T)
 
 
 def _error_prior_sigma(tb: _TelemetryBlock) -> FloatArray:
