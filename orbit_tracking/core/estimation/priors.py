@@ -112,10 +112,10 @@ def _jerk_densities(prob: Problem, beta: FloatArray, normal: FloatArray, grad: F
                 a[sl2, sl2] += pen2 / q[other]
             p_full = np.zeros_like(a)
             p_full[sl, sl] = pen / q0
-            rhs = g_d - p_full @ beta  # the gradient at beta with this prior at q0 ...
+            g_t = g_d.copy()  # the gradient of the data and the other targets' priors
             for other, sl2, _, pen2 in blocks:
                 if other != tid:
-                    rhs[sl2] -= pen2 @ beta[sl2] / q[other]
+                    g_t[sl2] -= pen2 @ beta[sl2] / q[other]
             d = np.sqrt(np.maximum(np.diag(a), 1e-300))
             a_s = a / d[:, None] / d[None, :]
             a_s[np.diag_indices_from(a_s)] += 1e-10
@@ -125,7 +125,7 @@ def _jerk_densities(prob: Problem, beta: FloatArray, normal: FloatArray, grad: F
                 return False
             mu = np.clip(mu, 0.0, 1.0)
             u = v.T @ (a_s @ (d * beta))  # beta in the pencil's coordinates
-            w = v.T @ ((rhs + p_full @ beta) / d)  # ... and the data's gradient
+            w = v.T @ (g_t / d)  # ... and that gradient
             value = q0
             for _it in range(JERK_ITERATIONS):
                 ratio = q0 / value  # the prior is P / value = ratio * P / q0
