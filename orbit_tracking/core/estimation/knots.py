@@ -310,8 +310,8 @@ def _hole_events(
     ``k + 1`` samples, none across another hole); the acceleration after the hole is
     predicted from the one before with the mean of the two jerks. A jump of the
     prediction's miss beyond ``event_min_jump`` and ``event_sigma`` times its noise puts
-    an event at both edges: the spline is then free to change its acceleration at either
-    edge, and the white-jerk prior leaves both alone. Comparing the two accelerations
+    an event at both edges: the spline is then free to change its acceleration somewhere
+    inside, and the measurements there decide where. Comparing the two accelerations
     without the jerk, as inside the sampling, would call every ten-second outage of a
     thrusting vehicle an event and leave the trajectory in the outage without a prior."""
     out: list[float] = []
