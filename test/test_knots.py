@@ -126,49 +126,6 @@ def test_detect_events_finds_none_on_a_steady_jerk():
     assert detect_events(rough, KnotConfig()) == []
 
 
-def _with_hole(rough: RoughTrajectory, lo: float, hi: float) -> RoughTrajectory:
-    keep = (rough.time < lo) | (rough.time > hi)
-    return RoughTrajectory(
-        'telemetry',
-        rough.time[keep],
-        rough.position[keep],
-        rough.velocity[keep],
-        rough.position_noise,
-        rough.velocity_noise,
-    )
-
-
-@pytest.mark.parametrize('seed', range(3))
-def test_detect_events_bridges_an_outage_when_a_steady_jerk_explains_it(seed):
-    # a thrusting vehicle's acceleration grows by 25 m/s^2 over a 10 s telemetry outage
-    # (2.5 m/s^3): no event, so the trajectory keeps its motion prior across the outage
-    rng = np.random.default_rng(200 + seed)
-    t = np.arange(0.0, 30.0 + 1e-9, DT)
-    jerk = 2.5
-    v = np.zeros((t.size, 3))
-    v[:, 0] = 300.0 + 0.5 * jerk * t**2
-    p = np.zeros((t.size, 3))
-    p[:, 0] = 300.0 * t + jerk * t**3 / 6.0
-    rough = RoughTrajectory(
-        'telemetry',
-        t,
-        p + rng.standard_normal(p.shape),
-        v + rng.standard_normal(v.shape) * 0.02,
-        1.0,
-        0.02,
-    )
-    assert detect_events(_with_hole(rough, 10.0, 20.0), KnotConfig()) == []
-
-
-@pytest.mark.parametrize('seed', range(3))
-def test_detect_events_marks_both_edges_of_an_outage_that_hides_a_jump(seed):
-    rng = np.random.default_rng(300 + seed)
-    rough = _with_hole(_broken_line_track(rng, 10.0 + rng.uniform(-2.0, 2.0)), 7.0, 13.0)
-    events = detect_events(rough, KnotConfig())
-    edges = rough.time[np.flatnonzero(np.diff(rough.time) > 1.0)[0] + np.arange(2)]
-    np.testing.assert_allclose(events, edges)
-
-
 def test_detect_events_needs_velocity_samples():
     rng = np.random.default_rng(4)
     r = _broken_line_track(rng, 10.0)

@@ -275,73 +275,15 @@ def detect_events(rough: RoughTrajectory, cfg: KnotConfig) -> list[float]:
     jump = np.linalg.norm(a_r - a_l, axis=1)
     jump[:k] = np.nan
     jump[n - k :] = np.nan
-    # a fit across a hole in the sampling (an outage) is no local fit: those candidates are
-    # judged by _hole_events instead
-    holes = np.diff(t) > HOLE_FACTOR * dt
-    before = np.concatenate([[0], np.cumsum(holes)])  # holes among the first i intervals
-    i = np.arange(k, n - k)
-    jump[i[before[i + k] > before[i - k]]] = np.nan
     sig_slope = rough.velocity_noise * float(np.sqrt(w_left @ w_left))
     threshold = max(cfg.event_min_jump, cfg.event_sigma * np.sqrt(2.0) * sig_slope * np.sqrt(3))
     cand = np.flatnonzero(np.nan_to_num(jump) > threshold)
-    events = _hole_events(t, v, np.flatnonzero(holes), k, rough.velocity_noise, cfg)
+    events: list[float] = []
     while cand.size:
         i = cand[np.argmax(jump[cand])]
         events.append(_refine_event(t, v, t[i], cfg.event_window, dt))
         cand = cand[np.abs(t[cand] - t[i]) > cfg.event_window]
     return sorted(events)
-
-
-HOLE_FACTOR = 2.5
-"""An interval between rough samples longer than this many median intervals is a hole (a
-telemetry outage)."""
-
-HOLE_FIT_S = 4.0
-"""Length [s] of the velocity fits on each side of a hole (:func:`_hole_events`)."""
-
-
-def _hole_events(
-    t: FloatArray, v: FloatArray, holes: NDArray[np.intp], k: int, noise: float, cfg: KnotConfig
-) -> list[float]:
-    """Events at the edges of the holes ``holes`` (the interval after each sample index)
-    across which the acceleration changes by more than a steady jerk explains.
-
-    A quadratic is fitted to the velocity over :data:`HOLE_FIT_S` on each side (at least
-    ``k + 1`` samples, none across another hole); the acceleration after the hole is
-    predicted from the one before with the mean of the two jerks. A jump of the
-    prediction's miss beyond ``event_min_jump`` and ``event_sigma`` times its noise puts
-    an event at both edges: the spline is then free to change its acceleration somewhere
-    inside, and the measurements there decide where. Comparing the two accelerations
-    without the jerk, as inside the sampling, would call every ten-second outage of a
-    thrusting vehicle an event and leave the trajectory in the outage without a prior."""
-    out: list[float] = []
-    n = t.size
-    edges = np.concatenate([[-1], holes, [n - 1]])
-    for h, j in enumerate(holes):
-        lo, hi = edges[h] + 1, edges[h + 2]  # the samples between the neighbouring holes
-        left = np.flatnonzero(
-            (t >= t[j] - HOLE_FIT_S) & (np.arange(n) >= lo) & (np.arange(n) <= j)
-        )
-        right = np.flatnonzero(
-            (t <= t[j + 1] + HOLE_FIT_S) & (np.arange(n) > j) & (np.arange(n) <= hi)
-        )
-        if left.size < k + 1 or right.size < k + 1:
-            continue
-        fits = []
-        for idx, at in ((left, t[j]), (right, t[j + 1])):
-            tau = t[idx] - at
-            a_mat = np.column_stack([np.ones_like(tau), tau, tau**2])
-            pinv = np.linalg.pinv(a_mat)
-            coef = pinv @ v[idx]  # (3, axes)
-            sig = noise * np.sqrt(np.sum(pinv**2, axis=1))  # of value, slope, curvature
-            fits.append((coef[1], 2.0 * coef[2], sig[1], 2.0 * sig[2]))
-        (a_l, j_l, sa_l, sj_l), (a_r, j_r, sa_r, sj_r) = fits
-        gap = float(t[j + 1] - t[j])
-        miss = float(np.linalg.norm(a_r - a_l - 0.5 * (j_l + j_r) * gap))
-        sig_miss = math.sqrt(sa_l**2 + sa_r**2 + (0.5 * gap) ** 2 * (sj_l**2 + sj_r**2))
-        if miss > max(cfg.event_min_jump, cfg.event_sigma * sig_miss * math.sqrt(3.0)):
-            out.extend([float(t[j]), float(t[j + 1])])
-    return out
 
 
 def _refine_event(t: FloatArray, v: FloatArray, tc: float, w: float, dt: float) -> float:
