@@ -433,6 +433,7 @@ class EstimatorNode(StationInputs):
         self.flushed = False
 
     def _on_telemetry(self, msg: Odometry) -> None:
+        self.counts['telemetry_messages'] += 1
         ns = self._stamp_of(msg, 'telemetry')
         if ns is None:
             return

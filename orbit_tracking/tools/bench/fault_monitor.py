@@ -47,6 +47,7 @@ _ACTIVITY = frozenset(
     {
         'measurement_messages',
         'measurements_received',
+        'telemetry_messages',
         'samples_without_angles',  # every CW radar sample, at the triangulation node
         'fixes',
         'windows_solved',

@@ -69,6 +69,7 @@ __all__ = [
     'OVERRIDES',
     'QUIET',
     'SETTLE_S',
+    'STOP_S',
     'TRI_FLUSH',
     'Phase',
     'ReplayRun',
@@ -102,6 +103,11 @@ OVERRIDES: dict[str, dict[str, object]] = {
     'results': {'flush_after': 3600.0},
 }
 """Parameters set on top of each node's ``config/<node>.yaml``."""
+
+STOP_S = 30.0
+"""Seconds the nodes have, together, to exit after SIGINT: a node still running then is
+hung. (Each of them exits within a second on an idle machine; under the test suite's load
+on two cores the triangulation node once took more than the 10 s allowed before.)"""
 
 SETTLE_S = 20.0
 """Seconds a node may take to show a message taken before it counts as hung."""
@@ -260,6 +266,7 @@ class _Replay:
         self.i = 0  # next bag message
         self.latest: dict[str, bytes] = {}
         self.station_sent = 0  # station measurement messages published (both participants)
+        self.telemetry_sent = 0  # telemetry messages published (both participants)
         self.last_sent = time.monotonic()  # when the last message was published
         self.injected_windows = 0
         self.snapshot: dict[str, Tick] = {}
@@ -279,6 +286,7 @@ class _Replay:
         env['ROS_DOMAIN_ID'] = str(self.domain)
         env['PYTHONUNBUFFERED'] = '1'
         env['RCUTILS_COLORIZED_OUTPUT'] = '0'
+        env['PYTHONFAULTHANDLER'] = '1'  # SIGABRT on a hung node: every thread's stack
         if where.source_root is not None:  # python -m must find this very tree
             path = (str(where.source_root), env.get('PYTHONPATH', ''))
             env['PYTHONPATH'] = os.pathsep.join(p for p in path if p)
@@ -301,15 +309,23 @@ class _Replay:
                 raise _Abort(f'{node} exited with status {proc.returncode}')
 
     def stop_nodes(self) -> None:
+        """SIGINT every node; one still running :data:`STOP_S` seconds later gets SIGABRT
+        (its log then shows every thread's stack: the nodes run with faulthandler on),
+        then SIGKILL."""
         for proc in self.procs.values():
             if proc.poll() is None:
                 proc.send_signal(signal.SIGINT)
+        deadline = time.monotonic() + STOP_S
         for node, proc in self.procs.items():
             try:
-                proc.wait(timeout=10.0)
+                proc.wait(timeout=max(deadline - time.monotonic(), 0.1))
             except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(timeout=10.0)
+                proc.send_signal(signal.SIGABRT)
+                try:
+                    proc.wait(timeout=5.0)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    proc.wait(timeout=10.0)
             self.run.exit_codes[node] = int(proc.returncode)
 
     def scan(self) -> dict[str, str]:
@@ -369,7 +385,12 @@ class _Replay:
         if node == 'results':
             with ros.lock:
                 return {'windows_received': ros.windows + self.injected_windows}
-        return {'measurement_messages': self.station_sent}
+        # the triangulation node takes no telemetry (it reports no telemetry_messages, so
+        # that key is not waited for there)
+        return {
+            'measurement_messages': self.station_sent,
+            'telemetry_messages': self.telemetry_sent,
+        }
 
     # -- replaying --
     def play(self, ros: Participants, until_s: float | None) -> None:
@@ -390,6 +411,7 @@ class _Replay:
             self.last_sent = time.monotonic()
             self.latest[m.topic] = m.raw
             self.station_sent += m.measurement
+            self.telemetry_sent += m.topic == TELEMETRY
             self.i += 1
 
     def reference(self, t: float) -> Reference:
@@ -415,6 +437,8 @@ class _Replay:
                 self.injected_windows += 1
             elif inj.topic.endswith('/measurements'):
                 self.station_sent += 1
+            elif inj.topic == TELEMETRY:
+                self.telemetry_sent += 1
             else:
                 counted = False
         phase = self.run.phases[fault.name] = Phase(len(msgs))
@@ -465,10 +489,12 @@ class _Replay:
         """The end of the stream: every message taken, the last windows solved and
         stitched, the held states published; the final counters."""
         final = self.settle(ros, time.time())
-        # every station message is taken; telemetry can lag behind that (one message per
-        # topic per executor cycle, and it has more messages per second), and ~/solve does
-        # not wait for late streams: one more status, published while the node idled, and
-        # the queues are empty
+        if self.telemetry_sent and 'telemetry_messages' not in final['estimator'].values:
+            raise _Abort('the estimator counts no telemetry_messages: cannot wait for its tail')
+        # every station and telemetry message is taken (counted: telemetry has more
+        # messages per second and can lag behind the stations under load, and ~/solve does
+        # not wait for late streams); the fixes are not counted: one more status,
+        # published while the node idled, and their queue is empty too
         final.update(self.settle(ros, final['estimator'].stamp, ('estimator',)))
         est = as_int(final['estimator'].values.get('windows_solved', '0'))
         answer = ros.call(ros.solve, 60.0)
