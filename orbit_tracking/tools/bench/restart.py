@@ -117,6 +117,7 @@ def run_pass(
     kill_after_checkpoint: bool = False,
     kill_delay: float = 0.0,
     restart_after: float = 1.0,
+    max_gap: float | None = None,
     kill_signal: int = signal.SIGKILL,
     kill_node: str = 'estimator',
     estimator_params: Mapping[str, object] | None = None,
@@ -148,6 +149,11 @@ def run_pass(
         last of those windows (it is written once the readers acknowledged the window):
         the restart resumes the window schedule. Else the kill may come first, and the
         window is solved again after the restart.
+    max_gap : float, optional
+        Most data seconds the player runs on while no killed node is back: once the data
+        reach the kill's data time plus this, the player is paused (SIGSTOP) until the
+        restarted node reads its input, then resumed (SIGCONT), so the data the killed
+        node misses do not grow with the machine's load. None: the player never waits.
     kill_signal : int
         ``signal.SIGKILL`` (default) or ``signal.SIGTERM``.
     kill_node : str
@@ -315,6 +321,7 @@ def run_pass(
             end = time.monotonic() + kill_delay
             spin_until(lambda: time.monotonic() >= end, kill_delay + 1.0, 'the kill delay')
             out.windows_before_kill = len(windows)
+            readers = node.count_subscribers(probe_topic)  # the restarted node's, again
             procs[kill_node].send_signal(kill_signal)
             procs[kill_node].wait(10)
             killed_at = time.monotonic()
@@ -324,14 +331,41 @@ def run_pass(
                 f'{kill_node} killed ({signal.Signals(kill_signal).name}) at data time '
                 f'{out.kill_data_s:.2f} s, after {len(windows)} window(s)'
             )
+            paused = [False]
+
+            def hold(pred: Callable[[], bool]) -> Callable[[], bool]:
+                """``pred``, pausing the player once the data pass ``max_gap``."""
+
+                def check() -> bool:
+                    if (
+                        max_gap is not None
+                        and not paused[0]
+                        and data_now[0] >= out.kill_data_s + max_gap
+                    ):
+                        procs['replay'].send_signal(signal.SIGSTOP)
+                        paused[0] = True
+                    return pred()
+
+                return check
+
             end = time.monotonic() + restart_after
-            spin_until(lambda: time.monotonic() >= end, restart_after + 1.0, 'the restart delay')
+            spin_until(
+                hold(lambda: time.monotonic() >= end), restart_after + 1.0, 'the restart delay'
+            )
             start(f'{kill_node}_2', commands[kill_node])
             spin_until(
-                lambda: node.count_publishers(_OUTPUT_TOPIC[kill_node]) >= 1,
+                hold(
+                    lambda: (
+                        node.count_publishers(_OUTPUT_TOPIC[kill_node]) >= 1
+                        and node.count_subscribers(probe_topic) >= readers
+                    )
+                ),
                 60,
                 f'the restarted {kill_node}',
             )
+            if paused[0]:  # it reads the player's topics again: the player goes on
+                procs['replay'].send_signal(signal.SIGCONT)
+                say(f'the player waited at data time {data_now[0]:.2f} s')
             if kill_node == 'estimator':
                 estimator.clear()
                 spin_until(
@@ -382,6 +416,8 @@ def run_pass(
         spin_until(settled, 30, 'the last states')
     finally:
         for proc in procs.values():
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGCONT)  # a paused player takes its SIGINT
             _stop(proc)
         executor.shutdown()
         node.destroy_node()
