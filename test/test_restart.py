@@ -87,7 +87,8 @@ def test_sigkill_of_the_estimator_mid_pass_and_restart_publishes_every_state(tmp
     z_bound = stats.norm.isf(ALPHA / (2 * n))
     report = (
         f'{RESTART_BAG}: killed at data time {killed.kill_data_s:.2f} s after '
-        f'{killed.windows_before_kill} window(s), first message of the new process at '
+        f'{killed.windows_before_kill} window(s), the player paused at '
+        f'{killed.paused_data_s:.2f} s, first message of the new process at '
         f'{killed.ready_data_s:.2f} s; {cmp}; bound on |d|/sigma {z_bound:.2f}; '
         f'wall {time.monotonic() - start:.0f} s'
     )

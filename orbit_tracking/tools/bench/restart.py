@@ -150,10 +150,11 @@ def run_pass(
         the restart resumes the window schedule. Else the kill may come first, and the
         window is solved again after the restart.
     max_gap : float, optional
-        Most data seconds the player runs on while no killed node is back: once the data
-        reach the kill's data time plus this, the player is paused (SIGSTOP) until the
-        restarted node reads its input, then resumed (SIGCONT), so the data the killed
-        node misses do not grow with the machine's load. None: the player never waits.
+        With ``kill_node='estimator'``: most data seconds the player runs on while no
+        estimator runs. Once the data reach the kill's data time plus this, the player is
+        paused (SIGSTOP) until the restarted estimator publishes its first status (it has
+        subscribed by then), then resumed (SIGCONT), so the data the estimator misses do not
+        grow with the machine's load. None: the player never waits.
     kill_signal : int
         ``signal.SIGKILL`` (default) or ``signal.SIGTERM``.
     kill_node : str
@@ -188,6 +189,8 @@ def run_pass(
 
     if kill_node not in _PROCESSING:
         raise ValueError(f'kill_node must be one of {_PROCESSING}; got {kill_node!r}')
+    if max_gap is not None and kill_node != 'estimator':
+        raise ValueError('max_gap is for estimator kills only')
     bag = Path(bag)
     work = Path(work_dir)
     work.mkdir(parents=True, exist_ok=True)
@@ -228,6 +231,7 @@ def run_pass(
     windows: list[Any] = []
     results: dict[str, str] = {}
     estimator: dict[str, str] = {}
+    estimator_heard_ns = [0]  # header stamp (system time) of the estimator's newest status
     data_now = [-math.inf]
 
     def on_diag(msg: DiagnosticArray) -> None:
@@ -236,6 +240,7 @@ def run_pass(
                 results.clear()
                 results.update({kv.key: kv.value for kv in st.values})
             elif st.name == 'estimator: windows':
+                estimator_heard_ns[0] = max(estimator_heard_ns[0], stamp_ns(msg.header.stamp))
                 estimator.clear()
                 estimator.update({kv.key: kv.value for kv in st.values})
 
@@ -321,10 +326,10 @@ def run_pass(
             end = time.monotonic() + kill_delay
             spin_until(lambda: time.monotonic() >= end, kill_delay + 1.0, 'the kill delay')
             out.windows_before_kill = len(windows)
-            readers = node.count_subscribers(probe_topic)  # the restarted node's, again
             procs[kill_node].send_signal(kill_signal)
             procs[kill_node].wait(10)
             killed_at = time.monotonic()
+            killed_ns = time.time_ns()  # a status stamped later is the new process's
             out.kill_data_s = data_now[0]
             procs[f'{kill_node}_killed'] = procs.pop(kill_node)
             say(
@@ -354,18 +359,20 @@ def run_pass(
             )
             start(f'{kill_node}_2', commands[kill_node])
             spin_until(
-                hold(
-                    lambda: (
-                        node.count_publishers(_OUTPUT_TOPIC[kill_node]) >= 1
-                        and node.count_subscribers(probe_topic) >= readers
-                    )
-                ),
+                hold(lambda: node.count_publishers(_OUTPUT_TOPIC[kill_node]) >= 1),
                 60,
                 f'the restarted {kill_node}',
             )
-            if paused[0]:  # it reads the player's topics again: the player goes on
+            if max_gap is not None:  # the player resumes once the new estimator is up
+                spin_until(
+                    hold(lambda: estimator_heard_ns[0] > killed_ns),
+                    60,
+                    'the first status of the restarted estimator',
+                )
+            if paused[0]:
                 procs['replay'].send_signal(signal.SIGCONT)
-                say(f'the player waited at data time {data_now[0]:.2f} s')
+                out.paused_data_s = data_now[0]
+                say(f'the player waited at data time {out.paused_data_s:.2f} s')
             if kill_node == 'estimator':
                 estimator.clear()
                 spin_until(

@@ -49,6 +49,9 @@ class PassResult:
         its new process reported its first measurement message (nan without a kill).
     restart_wall_s : float
         Wall seconds from the kill to then (nan without a kill).
+    paused_data_s : float
+        Newest measurement time [s] received here when the player was paused to wait for
+        the restarted estimator (``max_gap`` of the pass; nan: it did not wait).
     logs : dict
         Each process's output (``estimator`` and, after a kill, ``estimator_2``).
     wall_s : float
@@ -65,6 +68,7 @@ class PassResult:
     kill_data_s: float = math.nan
     ready_data_s: float = math.nan
     restart_wall_s: float = math.nan
+    paused_data_s: float = math.nan
     logs: dict[str, str] = field(default_factory=dict)
     wall_s: float = 0.0
 
