@@ -35,6 +35,11 @@ its midpoint): a misfit a few seconds long inside an interval of tens of seconds
 the rough trajectory gave no knot) hardly shows at the midpoint alone."""
 
 
+TIE = 0.8
+"""A candidate scoring at least this share of the best in its interval ties with it (the
+earliest of them is taken)."""
+
+
 def _knot_scores(
     ax: SplineAxis,
     ts: FloatArray,
@@ -47,7 +52,7 @@ def _knot_scores(
     min_len: float,
 ) -> list[tuple[float, float, int]]:
     """Score statistic of a knot in every interval of ``ax``: ``(tau, score, tried)`` with
-    the best of the ``tried`` candidates: its midpoint and, in an interval at least 2
+    the best (:data:`TIE`) of the ``tried`` candidates: its midpoint and, in an interval at least 2
     :data:`CANDIDATE_SPACING` long, the centres of its split into pieces about that long.
 
     ``ts`` are the (sorted) times of the residual rows ``ridx`` the axis acts on, and
@@ -64,14 +69,14 @@ def _knot_scores(
     for lo, hi in zip(brk[:-1], brk[1:], strict=True):
         if hi - lo < min_len:
             continue
-        # (the count with a margin: an interval of a whole number of spacings keeps its
-        # candidates when an edge moves by 1e-6 s)
-        m = int((hi - lo) / CANDIDATE_SPACING + 1e-3)
+        # the pieces from the interval's ends on that grid, so that they do not move
+        # either (the count with a margin: a whole number of spacings keeps its count)
+        lo_g, hi_g = round(lo / q) * q, round(hi / q) * q
+        m = int((hi_g - lo_g) / CANDIDATE_SPACING + 1e-3)
         spots = [0.5 * (lo + hi)]
         if m >= 2:
-            spots += list(lo + (hi - lo) * (np.arange(m) + 0.5) / m)
-        best: tuple[float, float] | None = None
-        tried = 0
+            spots += list(lo_g + (hi_g - lo_g) * (np.arange(m) + 0.5) / m)
+        scored: list[tuple[float, float]] = []
         for tau in sorted({round(spot / q) * q for spot in spots}):
             if not lo + 0.5 * q <= tau <= hi - 0.5 * q:
                 continue
@@ -91,11 +96,13 @@ def _knot_scores(
             den = float(col @ col - c @ (cov @ c))
             if den <= 1e-12 * float(col @ col):
                 continue
-            tried += 1
-            if best is None or g * g / den > best[1]:
-                best = (tau, g * g / den)
-        if best is not None:
-            out.append((best[0], best[1], tried))
+            scored.append((tau, g * g / den))
+        if scored:
+            # the first candidate within TIE of the best: a near tie does not flip with the
+            # data sample a moved window edge takes in or out
+            top = max(sc for _, sc in scored)
+            tau, sc = next(c for c in scored if c[1] >= TIE * top)
+            out.append((tau, sc, len(scored)))
     return out
 
 
