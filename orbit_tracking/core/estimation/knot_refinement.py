@@ -29,17 +29,6 @@ __all__ = ['choose_knots_safely', 'polynomial_selection', 'prune_knots', 'rebuil
 FloatArray = NDArray[np.float64]
 
 
-CANDIDATE_SPACING = 2.0
-"""Spacing [s] of the candidate knots the test tries inside a long knot interval (besides
-its midpoint): a misfit a few seconds long inside an interval of tens of seconds (an axis
-the rough trajectory gave no knot) hardly shows at the midpoint alone."""
-
-
-TIE = 0.8
-"""A candidate scoring at least this share of the best in its interval ties with it (the
-earliest of them is taken)."""
-
-
 def _knot_scores(
     ax: SplineAxis,
     ts: FloatArray,
@@ -50,10 +39,8 @@ def _knot_scores(
     jac: sp.csr_matrix,
     cov: FloatArray,
     min_len: float,
-) -> list[tuple[float, float, int]]:
-    """Score statistic of a knot in every interval of ``ax``: ``(tau, score, tried)`` with
-    the best (:data:`TIE`) of the ``tried`` candidates: its midpoint and, in an interval at least 2
-    :data:`CANDIDATE_SPACING` long, the centres of its split into pieces about that long.
+) -> list[tuple[float, float]]:
+    """Score statistic of a knot at the midpoint of every interval of ``ax``.
 
     ``ts`` are the (sorted) times of the residual rows ``ridx`` the axis acts on, and
     ``up``/``uv`` the whitened derivatives of those rows by the axis' value and rate.
@@ -63,46 +50,32 @@ def _knot_scores(
     out = []
     brk = np.unique(ax.knots)
     p = ax.degree
-    # candidates on the time axis's grid of min_len / 2: an interval that ends at a
-    # window edge gets the same candidates whether the edge moved by 1e-6 s or not
-    q = 0.5 * min_len
     for lo, hi in zip(brk[:-1], brk[1:], strict=True):
         if hi - lo < min_len:
             continue
-        # the pieces from the interval's ends on that grid, so that they do not move
-        # either (the count with a margin: a whole number of spacings keeps its count)
-        lo_g, hi_g = round(lo / q) * q, round(hi / q) * q
-        m = int((hi_g - lo_g) / CANDIDATE_SPACING + 1e-3)
-        spots = [0.5 * (lo + hi)]
-        if m >= 2:
-            spots += list(lo_g + (hi_g - lo_g) * (np.arange(m) + 0.5) / m)
-        scored: list[tuple[float, float]] = []
-        for tau in sorted({round(spot / q) * q for spot in spots}):
-            if not lo + 0.5 * q <= tau <= hi - 0.5 * q:
-                continue
-            idx = int(np.searchsorted(ax.knots, tau))
-            refined = np.insert(ax.knots, idx, tau)
-            s0 = min(max(idx - 2, 0), refined.size - p - 2)
-            local = refined[s0 : s0 + p + 2]
-            i0, i1 = np.searchsorted(ts, [local[0], local[-1]])
-            if i1 - i0 < 2:
-                continue
-            b = BSpline.basis_element(local, extrapolate=False)
-            tt = ts[i0:i1]
-            col = np.nan_to_num(b(tt)) * up[i0:i1] + np.nan_to_num(b.derivative()(tt)) * uv[i0:i1]
-            rows = ridx[i0:i1]
-            g = float(col @ r[rows])
-            c = jac[rows].T @ col
-            den = float(col @ col - c @ (cov @ c))
-            if den <= 1e-12 * float(col @ col):
-                continue
-            scored.append((tau, g * g / den))
-        if scored:
-            # the first candidate within TIE of the best: a near tie does not flip with the
-            # data sample a moved window edge takes in or out
-            top = max(sc for _, sc in scored)
-            tau, sc = next(c for c in scored if c[1] >= TIE * top)
-            out.append((tau, sc, len(scored)))
+        # the midpoint on the time axis's grid of min_len / 2: an interval that ends at a
+        # window edge gets the same candidate whether the edge moved by 1e-6 s or not
+        q = 0.5 * min_len
+        tau = round(0.5 * (lo + hi) / q) * q
+        if not lo + 0.5 * q <= tau <= hi - 0.5 * q:
+            continue
+        idx = int(np.searchsorted(ax.knots, tau))
+        refined = np.insert(ax.knots, idx, tau)
+        s0 = min(max(idx - 2, 0), refined.size - p - 2)
+        local = refined[s0 : s0 + p + 2]
+        i0, i1 = np.searchsorted(ts, [local[0], local[-1]])
+        if i1 - i0 < 2:
+            continue
+        b = BSpline.basis_element(local, extrapolate=False)
+        tt = ts[i0:i1]
+        col = np.nan_to_num(b(tt)) * up[i0:i1] + np.nan_to_num(b.derivative()(tt)) * uv[i0:i1]
+        rows = ridx[i0:i1]
+        g = float(col @ r[rows])
+        c = jac[rows].T @ col
+        den = float(col @ col - c @ (cov @ c))
+        if den <= 1e-12 * float(col @ col):
+            continue
+        out.append((tau, g * g / den))
     return out
 
 
@@ -125,11 +98,9 @@ def refine_knots(
     """Knots the measurements ask for (beyond the paper).
 
     For every knot interval of every axis, a score (Lagrange-multiplier) test of adding
-    a knot at its midpoint, or in a long interval at the best of several points
-    (:data:`CANDIDATE_SPACING`; every point tried counts in the Bonferroni correction):
-    with ``j`` the Jacobian column of the new basis function,
+    a knot at its midpoint: with ``j`` the Jacobian column of the new basis function,
     ``s = (j^T r)^2 / (j^T j - (J^T j)^T (J^T J)^-1 (J^T j))`` is chi-square(1) when the
-    spline already represents the trajectory. Candidates with ``s`` above the Bonferroni
+    spline already represents the trajectory. Midpoints with ``s`` above the Bonferroni
     quantile at ``refine_alpha`` are inserted. This catches what the rough trajectory
     could not show (its noise hides model errors the measurements resolve). The same
     test runs on the telemetry error spline (each component), so a drift that bends
@@ -148,7 +119,6 @@ def refine_knots(
     min_len = 2.0 * cfg.knots.min_spacing
     traj_c: list[tuple[int, int, float, float]] = []  # (target, axis, tau, score)
     tel_c: list[tuple[int, int, float, float]] = []  # (target, component, tau, score)
-    n_cand = 0  # candidates tried (the Bonferroni count)
     for tid, traj in prob.trajs.items():
         sel = np.flatnonzero(tgt == tid)
         order = sel[np.argsort(tim[sel], kind='stable')]
@@ -156,9 +126,8 @@ def refine_knots(
         for a, ax in enumerate(traj.axes):
             up = hp[order] @ traj.rotation[:, a]
             uv = hv[order] @ traj.rotation[:, a]
-            for tau, sc, k in _knot_scores(ax, ts, up, uv, order, r, jac, cov, min_len):
+            for tau, sc in _knot_scores(ax, ts, up, uv, order, r, jac, cov, min_len):
                 traj_c.append((tid, a, tau, sc))
-                n_cand += k
         tb = next((t for t in prob.telemetry if t.target == tid), None)
         if tb is None:
             continue
@@ -167,8 +136,8 @@ def refine_knots(
             scores = _knot_scores(
                 tb.axis, tim[tsel], hp[tsel, c], hv[tsel, c], tsel, r, jac, cov, min_len
             )
-            tel_c.extend((tid, c, tau, sc) for tau, sc, _ in scores)
-            n_cand += sum(k for *_, k in scores)
+            tel_c.extend((tid, c, tau, sc) for tau, sc in scores)
+    n_cand = len(traj_c) + len(tel_c)
     if n_cand == 0:
         return {}, {}
     limit = float(chi2.isf(cfg.refine_alpha / n_cand, 1))
