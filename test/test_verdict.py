@@ -204,6 +204,31 @@ def test_beyond_the_linear_range_the_covariance_is_its_largest_sigma_in_every_di
     assert np.all(np.linalg.eigvalsh(out[1] - cov[1]) >= -1e-6)
 
 
+def test_the_linear_range_is_judged_against_what_the_fit_knows_of_a_value():
+    """Robustness draw ascent 95: two CW radars alone, a 90 m x 0.025 m cigar along the
+    range sphere and states 170 m off along it, 9.6 sigma (Mahalanobis) off because the
+    sphere bends 0.3 m away from the cigar's axis. That bend is less than one range row's
+    sigma but many of the fitted range's: the fit's own precision is the yardstick."""
+    from orbit_tracking.core.estimation.linearity import nonlinear_spans
+    from orbit_tracking.core.models.measurements import StationPose
+
+    x = np.zeros((1, 6))
+    x[0, 0] = 30e3
+    cov = np.zeros((1, 6, 6))
+    cov[0, :3, :3] = np.diag([0.02**2, 40.0**2, 0.02**2])  # thin along the range
+    cov[0, 3:, 3:] = 1e-4 * np.eye(3)
+    pose = StationPose.fixed([0.0, 0.0, 0.0], np.eye(3), 1)
+    rows = [(('range',), np.array([0.0]), np.full((1, 1), 0.5), pose)]
+    # 3 x 40 m either way at 30 km bends the range by 120^2 / (2 * 30 km) = 0.24 m: half a
+    # row's sigma (0.5 m) but 12 sigma of the fitted range (0.02 m)
+    assert nonlinear_spans(np.array([0.0]), x, cov, rows, 1.0) == ((-0.25, 0.25),)
+    assert nonlinear_spans(np.array([0.0]), x, cov, rows, 11.0) == ((-0.25, 0.25),)
+    assert nonlinear_spans(np.array([0.0]), x, cov, rows, 13.0) == ()
+    cov[0, 0, 0] = 1.0  # the fit knows the range no better than a row: 0.24 / 0.5
+    assert nonlinear_spans(np.array([0.0]), x, cov, rows, 0.4) == ((-0.25, 0.25),)
+    assert nonlinear_spans(np.array([0.0]), x, cov, rows, 0.6) == ()
+
+
 @pytest.mark.timeout(120)
 def test_a_state_the_data_leave_undetermined_is_not_published_as_a_confident_wrong_one():
     """Robustness draw ascent 5 without telemetry: in its incomplete segment only a CW

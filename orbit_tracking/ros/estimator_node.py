@@ -282,7 +282,8 @@ class EstimatorNode(StationInputs):
                 'nonlinear_sigma',
                 1.0,
                 'Where three sigma of a state along its longest axis change a nearby station '
-                'value to second order by more than this many of its sigmas, the linearised '
+                "value to second order by more than this many of its sigmas (the row's, or "
+                "the fitted value's from the state covariance if smaller), the linearised "
                 'covariance no longer describes the error: it is published as its largest '
                 'sigma in every direction. 0 = never.',
                 read_only=True,

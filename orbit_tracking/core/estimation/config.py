@@ -107,7 +107,8 @@ class EstimatorConfig:
         Significance of the test that switches ``auto`` to ``separate``.
     nonlinear_sigma : float
         Where three sigma of a state along its longest axis change a nearby station value
-        to second order by more than this many of its sigmas, the linearised covariance
+        to second order by more than this many of its sigmas (the row's, or the fitted
+        value's from the state covariance if smaller), the linearised covariance
         is published as its largest sigma in every direction
         (:mod:`~orbit_tracking.core.estimation.linearity`); 0 = never.
     edge_gap : float

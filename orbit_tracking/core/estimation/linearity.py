@@ -10,7 +10,9 @@ their own ellipsoid, with nothing in the residuals to say so).
 
 :func:`nonlinear_spans` measures that directly: at every sample time it moves the state
 :data:`EXCURSION` (3) sigma either way along its covariance's longest position axis and
-takes the second difference of every nearby station value (in that value's sigmas). Above
+takes the second difference of every nearby station value, in sigmas of that value as the
+fit knows it (the smaller of the row's sigma and ``sqrt(J P J^T)``: a bend smaller than one
+row's sigma still misleads a fit that knows the value to a centimetre). Above
 ``nonlinear_sigma`` the linear covariance is no statement about the error, and
 :meth:`~orbit_tracking.core.estimation.results.TargetSolution.states` publishes the largest
 sigma in every direction there (:func:`isotropic`).
@@ -102,11 +104,18 @@ def nonlinear_spans(
             pz = pose.take(np.concatenate([idx, idx, idx]))
             with np.errstate(all='ignore'):
                 f, _ = predict(fields, np.vstack([x0, xp, xm]), pz)
+                _, jac = predict(fields, x0, pose.take(idx), jacobian=True)
                 k = idx.size
                 second = residual(fields, f[k : 2 * k], f[:k]) + residual(
                     fields, f[2 * k :], f[:k]
                 )
-                c = np.abs(second) / (2.0 * sig[idx])
+                # the value's own precision from the state (J P J^T): a fit of many
+                # rows knows a value far better than one row's sigma, and a bend of the
+                # long axis by more than that is what the linear covariance misses
+                assert jac is not None
+                fitted = np.sqrt(np.maximum(np.einsum('mki,mij,mkj->mk', jac, cov[use], jac), 0.0))
+                scale = np.minimum(sig[idx], np.maximum(fitted, 1e-3 * sig[idx]))
+                c = np.abs(second) / (2.0 * scale)
             c = np.where(np.isfinite(c), c, np.inf).max(axis=1)
             worst[use] = np.maximum(worst[use], c)
     bad = worst > limit

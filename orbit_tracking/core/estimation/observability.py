@@ -113,7 +113,10 @@ def isotropic_spans(
     (:func:`~orbit_tracking.core.estimation.linearity.nonlinear_spans`)."""
     if cfg.nonlinear_sigma <= 0.0 or not np.all(np.isfinite(cov)):
         return ()
-    tt = np.arange(math.ceil(traj.t0 / SAMPLE_S) * SAMPLE_S, traj.t1, SAMPLE_S)
+    # the grid and the window's two ends: a state before the first grid time is tested
+    # too (robustness draws had the first 0.2 s of a window off by 350 of its sigmas)
+    grid = np.arange(math.ceil(traj.t0 / SAMPLE_S) * SAMPLE_S, traj.t1, SAMPLE_S)
+    tt = np.unique(np.concatenate([[traj.t0], grid, [traj.t1]]))
     if tt.size == 0:
         return ()
     rows = []
