@@ -264,7 +264,12 @@ def _mpw(values: Sequence[float], fmt: str = '.2f') -> str:
 
 
 def _share(flags: Sequence[bool]) -> str:
-    return f'{100.0 * sum(flags) / len(flags):.0f} % ({sum(flags)}/{len(flags)})' if flags else '—'
+    """``k/n`` as a percentage to a tenth, rounded down: 92 of 97 is 94.8 %, never a
+    rounded 95 % that reads as a target met."""
+    if not flags:
+        return '—'
+    k, n = sum(flags), len(flags)
+    return f'{math.floor(1000 * k / n) / 10:.1f} % ({k}/{n})'
 
 
 def _methods(rs: Sequence[DrawResult], name: str) -> list[MethodResult]:
