@@ -73,7 +73,8 @@ def nonlinear_spans(
     limit: float,
 ) -> tuple[Segment, ...]:
     """Spans around the sample ``times`` (m,) where a station value within :data:`NEAR_S`
-    changes to second order by more than ``limit`` of its sigma across :data:`EXCURSION`
+    changes to second order by more than ``limit`` of its sigma (the row's, or the value's
+    own ``sqrt(J P J^T)`` if smaller) across :data:`EXCURSION`
     sigma of the state (``states`` (m, 6), ``cov`` (m, 6, 6)) along its longest position axis."""
     m = times.size
     if m == 0 or limit <= 0.0:
