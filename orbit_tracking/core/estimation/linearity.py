@@ -102,18 +102,15 @@ def nonlinear_spans(
             xp, xm = x0.copy(), x0.copy()
             xp[:, :3] += step[use]
             xm[:, :3] -= step[use]
-            pz = pose.take(np.concatenate([idx, idx, idx]))
             with np.errstate(all='ignore'):
-                f, _ = predict(fields, np.vstack([x0, xp, xm]), pz)
-                _, jac = predict(fields, x0, pose.take(idx), jacobian=True)
+                f0, jac = predict(fields, x0, pose.take(idx), jacobian=True)
+                assert jac is not None
+                f, _ = predict(fields, np.vstack([xp, xm]), pose.take(np.concatenate([idx, idx])))
                 k = idx.size
-                second = residual(fields, f[k : 2 * k], f[:k]) + residual(
-                    fields, f[2 * k :], f[:k]
-                )
+                second = residual(fields, f[:k], f0) + residual(fields, f[k:], f0)
                 # the value's own precision from the state (J P J^T): a fit of many
                 # rows knows a value far better than one row's sigma, and a bend of the
                 # long axis by more than that is what the linear covariance misses
-                assert jac is not None
                 fitted = np.sqrt(np.maximum(np.einsum('mki,mij,mkj->mk', jac, cov[use], jac), 0.0))
                 scale = np.minimum(sig[idx], np.maximum(fitted, 1e-3 * sig[idx]))
                 c = np.abs(second) / (2.0 * scale)

@@ -117,8 +117,6 @@ def isotropic_spans(
     # too (robustness draws had the first 0.2 s of a window off by 350 of its sigmas)
     grid = np.arange(math.ceil(traj.t0 / SAMPLE_S) * SAMPLE_S, traj.t1, SAMPLE_S)
     tt = np.unique(np.concatenate([[traj.t0], grid, [traj.t1]]))
-    if tt.size == 0:
-        return ()
     rows = []
     for b in prob.stations:
         if b.target != tid or b.time.size == 0:
