@@ -33,9 +33,10 @@ GAP_LIMIT: dict[str, float] = {}
 
 
 KNOWN_FAILING = {
-    'time_skew': 'a position time-tag skew makes a telemetry error v * skew whose slope jumps '
-    'at every staging event, which the cubic error spline cannot follow: 28 states of the '
-    'incomplete segment are more than 5 sigma off (issue 14, open)',
+    'time_skew': 'the time-tag delays are found, but biased by several of their sigmas (a '
+    'velocity error proportional to the acceleration is hard to tell from the error spline '
+    'in an ascent), and a few states of the incomplete segment are more than 5 sigma off '
+    '(issue 14, open)',
 }
 
 
@@ -71,14 +72,15 @@ def test_the_telemetry_velocity_gets_an_error_of_its_own_only_when_its_residuals
 ):
     """White telemetry errors keep the one-source model (velocity error = d/dt position
     error); a time-tag skew between position and velocity (velocity error = acceleration x
-    skew, not the position's) is detected by the score test and modelled."""
+    skew, not the position's) is detected by the score test and modelled. (By default the
+    skew is taken by time-tag delays, ``test_telemetry_delays.py``; here they are off.)"""
     case = _case('ascent', SEED, SPAN, model)
-    est = estimate(case.obs_est, 0.0, SPAN, EstimatorConfig())
+    est = estimate(case.obs_est, 0.0, SPAN, EstimatorConfig(telemetry_delays='off'))
     assert est.success, est.message
     own = 'velocity error of its own' in est.message
     assert own == separate, est.message
     assert est.targets[0].telemetry_velocity == ('separate' if separate else 'derivative')
-    derivative = EstimatorConfig(telemetry_velocity_error='derivative')
+    derivative = EstimatorConfig(telemetry_velocity_error='derivative', telemetry_delays='off')
     fixed = estimate(case.obs_est, 0.0, SPAN, derivative)
     assert 'velocity error' not in fixed.message
     if not separate:  # the same solve either way

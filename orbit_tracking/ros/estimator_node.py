@@ -259,6 +259,14 @@ class EstimatorNode(StationInputs):
                 'window by a score test on the velocity residuals).',
                 read_only=True,
             ),
+            telemetry_delays=declare(
+                self,
+                'telemetry_delays',
+                'auto',
+                'Time-tag delays of the telemetry position and velocity: auto (estimated in a '
+                'window whose residuals ask for them, by a score test), off or on.',
+                read_only=True,
+            ),
             estimate_telemetry_error=declare(
                 self,
                 'estimate_telemetry_error',

@@ -159,6 +159,13 @@ def _window_summary(e: Estimate) -> dict[str, object]:
             for tid, sol in sorted(e.targets.items())
             if sol.telemetry_velocity
         },
+        # the telemetry's time-tag delays [s] (position, its sigma, velocity, its sigma)
+        # where the window estimated them
+        'telemetry_delays_s': {
+            int(tid): [float(x) for x in sol.telemetry_delays]
+            for tid, sol in sorted(e.targets.items())
+            if sol.telemetry_delays is not None
+        },
         # the size of the telemetry error spline [m] (estimated from the data by default)
         'telemetry_error_sigma_m': {
             int(tid): float(sol.telemetry_error_sigma)

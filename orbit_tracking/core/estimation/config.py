@@ -15,6 +15,7 @@ from orbit_tracking.core.models.systematic import BiasParameter
 __all__ = [
     'KNOT_METHODS',
     'ROBUST_LOSSES',
+    'TELEMETRY_DELAYS',
     'TELEMETRY_VELOCITY_ERRORS',
     'EstimationError',
     'EstimatorConfig',
@@ -36,6 +37,10 @@ ROBUST_LOSSES: tuple[str, ...] = ('huber', 'cauchy', 'none')
 TELEMETRY_VELOCITY_ERRORS: tuple[str, ...] = ('auto', 'derivative', 'separate')
 """How the telemetry velocity error is modelled: the derivative of the position error
 only, with a separate error of its own, or chosen per window by a test on the residuals."""
+
+TELEMETRY_DELAYS: tuple[str, ...] = ('auto', 'off', 'on')
+"""Whether the telemetry's time-tag delays (position and velocity) are estimated: chosen
+per window by a test on the residuals, never, or always."""
 
 
 class EstimationError(OrbitTrackingError, RuntimeError):
@@ -104,7 +109,13 @@ class EstimatorConfig:
     telemetry_velocity_error_spacing : float
         Knot spacing [s] of ``w`` (piecewise linear).
     telemetry_velocity_alpha : float
-        Significance of the test that switches ``auto`` to ``separate``.
+        Significance of the test that switches ``auto`` to ``separate``, and of the test
+        that adds time-tag delays.
+    telemetry_delays : str
+        ``auto`` (default): a window estimates a time-tag delay of the telemetry position
+        and one of its velocity (``p(t - d_p)``, ``v(t - d_v)``) when a score test on its
+        residuals asks for them (:mod:`~orbit_tracking.core.estimation.telemetry_delays`);
+        ``off``: never; ``on``: always.
     nonlinear_sigma : float
         Where three sigma of a state along its longest axis change a nearby station value
         to second order by more than this many of its sigmas (the row's, or the fitted
@@ -196,6 +207,7 @@ class EstimatorConfig:
     telemetry_velocity_error: str = 'auto'
     telemetry_velocity_error_spacing: float = 20.0
     telemetry_velocity_alpha: float = 1e-3
+    telemetry_delays: str = 'auto'
     nonlinear_sigma: float = 1.0
     edge_gap: float = 0.5
     estimate_telemetry_noise: bool = True
@@ -258,6 +270,11 @@ class EstimatorConfig:
             )
         if not self.telemetry_velocity_error_spacing > 0.0:
             raise ValueError('telemetry_velocity_error_spacing must be > 0')
+        if self.telemetry_delays not in TELEMETRY_DELAYS:
+            raise ValueError(
+                f'telemetry_delays must be one of {TELEMETRY_DELAYS}; '
+                f'got {self.telemetry_delays!r}'
+            )
         if not 0.0 < self.telemetry_velocity_alpha < 1.0:
             raise ValueError('telemetry_velocity_alpha must lie in (0, 1)')
         if not self.edge_gap > 0.0:

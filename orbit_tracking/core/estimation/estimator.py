@@ -72,8 +72,11 @@ from orbit_tracking.core.estimation.observability import (
     isotropic_note,
     isotropic_spans,
 )
+from orbit_tracking.core.estimation.priors import ERROR_SIGMA_RANGE
 from orbit_tracking.core.estimation.problem import Problem
 from orbit_tracking.core.estimation.results import Estimate, TargetSolution, state_covariance
+from orbit_tracking.core.estimation.telemetry_block import TelemetryBlock
+from orbit_tracking.core.estimation.telemetry_delays import delay_test
 from orbit_tracking.core.estimation.telemetry_velocity import velocity_error_test
 from orbit_tracking.core.estimation.verdict import judge
 from orbit_tracking.core.models.measurements import residual
@@ -265,6 +268,28 @@ def _estimate_once(
         halvings += h2
         r, jac, cov, cond, singular = covariance(prob, out.beta)
     tel_note = ''
+    if cfg.telemetry_delays == 'auto' and prob.telemetry:
+        d_tests = delay_test(prob, out.beta, obs, cfg, t0, t1)
+        add = {t.target: True for t in d_tests if t.delays}
+        if add:
+            prob, beta = rebuild(prob, out.beta, {}, {}, obs, cfg, t0, t1, tel_delays=add)
+            # the slow error spline took what it could of the skew in the first solve: it
+            # starts again from nothing, so that the delays take the skew and e only what
+            # the evidence update then finds left (it may grow tenfold per round)
+            for tb in prob.telemetry:
+                if tb.target in add:
+                    beta[tb.offset : tb.offset + 3 * tb.axis.n_coef] = 0.0
+                    tb.prior_sigma = (ERROR_SIGMA_RANGE[0] * tb.declared_sigma, tb.prior_sigma[1])
+            out, it2, h2 = solve(prob, beta, cfg, warm_up=False)
+            iterations += it2
+            halvings += h2
+            r, jac, cov, cond, singular = covariance(prob, out.beta)
+        tel_note = ''.join(
+            f'; telemetry {t.target} time-tag delays '
+            + ('estimated' if t.delays else 'not estimated')
+            + f' (test {t.statistic:.3g} vs {t.threshold:.3g}, {t.dof} dof)'
+            for t in d_tests
+        )
     if cfg.telemetry_velocity_error == 'auto' and prob.telemetry:
         tests = velocity_error_test(prob, out.beta, obs, cfg, t0, t1)
         switch = {t.target: True for t in tests if t.separate}
@@ -274,14 +299,14 @@ def _estimate_once(
             iterations += it2
             halvings += h2
             r, jac, cov, cond, singular = covariance(prob, out.beta)
-        tel_note = ''.join(
+        tel_note += ''.join(
             f'; telemetry {t.target} velocity error '
             + ('of its own' if t.separate else '= d/dt position error')
             + f' (test {t.statistic:.3g} vs {t.threshold:.3g}, {t.dof} dof)'
             for t in tests
         )
     elif cfg.telemetry_velocity_error == 'separate' and prob.telemetry:
-        tel_note = '; telemetry velocity error of its own (configured)'
+        tel_note += '; telemetry velocity error of its own (configured)'
     pruned = {tid: 0 for tid in selections}
     if cfg.prune_z > 0.0 and cfg.knot_method == 'sparse':
         # knots the measurements do not support go before the knot test adds any
@@ -393,6 +418,7 @@ def _estimate_once(
             '' if tel is None else ('separate' if tel.w_axis is not None else 'derivative'),
             None if tel is None else tel.prior_sigma[0],
             prob.jerk_q.get(tid),
+            _delays(tel, out.beta, cov),
         )
     factors = {
         (b.station, f): float(b.factor[j])
@@ -649,3 +675,14 @@ def _seed_from_previous(
     if not np.all(np.isfinite(coef)):
         return sel
     return replace(sel, coef=coef)
+
+
+def _delays(
+    tel: TelemetryBlock | None, beta: FloatArray, cov: FloatArray
+) -> tuple[float, float, float, float] | None:
+    """The telemetry's estimated time-tag delays and their sigmas (None without)."""
+    if tel is None or not tel.delays:
+        return None
+    o = tel.delay_offset
+    sig = np.sqrt(np.maximum(np.diag(cov)[o : o + 2], 0.0))
+    return float(beta[o]), float(sig[0]), float(beta[o + 1]), float(sig[1])

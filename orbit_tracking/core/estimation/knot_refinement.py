@@ -216,11 +216,13 @@ def rebuild(
     t0: float,
     t1: float,
     tel_separate: Mapping[int, bool] | None = None,
+    tel_delays: Mapping[int, bool] | None = None,
 ) -> tuple[Problem, FloatArray]:
     """The problem on new knots, started from the current solution (refined knots contain
     the old ones, so the current spline is represented exactly; pruned ones get its
     least-squares fit). ``tel_separate`` switches targets' telemetry to a velocity error
-    of its own (started at zero); the others keep their model."""
+    of its own, ``tel_delays`` to estimated time-tag delays (both started at zero); the
+    others keep their model."""
     sols: dict[int, tuple[SplineTrajectory, FloatArray]] = {}
     for tid, traj in prob.trajs.items():
         coef = prob._coef(beta, tid)
@@ -239,7 +241,9 @@ def rebuild(
     tel_axes = {tb.target: new_tel.get(tb.target, tb.axis) for tb in prob.telemetry}
     separate = {tb.target: tb.w_axis is not None for tb in prob.telemetry}
     separate.update(tel_separate or {})
-    new = Problem(obs, sols, cfg, t0, t1, tel_axes, separate, prob.tel_events)
+    delays = {tb.target: tb.delays for tb in prob.telemetry}
+    delays.update(tel_delays or {})
+    new = Problem(obs, sols, cfg, t0, t1, tel_axes, separate, prob.tel_events, delays)
     new.gated = prob.gated
     new.jerk_q.update({tid: q for tid, q in prob.jerk_q.items() if tid in new.jerk_q})
     new.gate_refused = prob.gate_refused
@@ -275,6 +279,10 @@ def rebuild(
             o_old = tb_old.offset + 3 * tb_old.axis.n_coef
             o_new = tb_new.offset + 3 * tb_new.axis.n_coef
             beta_new[o_new : o_new + n_w] = beta[o_old : o_old + n_w]
+        if tb_new.delays and tb_old.delays:
+            beta_new[tb_new.delay_offset : tb_new.delay_offset + 2] = beta[
+                tb_old.delay_offset : tb_old.delay_offset + 2
+            ]
     return new, beta_new
 
 

@@ -4,7 +4,8 @@ measurement rows of stations, telemetry, fixes and the thrust constraint, and th
 Jacobian. :class:`Problem` evaluates residuals and Jacobians, tells which rows are
 measurements (:data:`ROBUST_KINDS`, what a robust loss and the residual gate act on) and
 gives the whitened residual of every unit the gate may reject (:meth:`Problem.gate_units`);
-the solver is in :mod:`~orbit_tracking.core.estimation.gauss_newton`."""
+the solver is in :mod:`~orbit_tracking.core.estimation.gauss_newton`, the telemetry's rows
+and error model in :mod:`~orbit_tracking.core.estimation.telemetry_block`."""
 
 from __future__ import annotations
 
@@ -21,6 +22,13 @@ from orbit_tracking.core.estimation.bspline import SplineAxis, SplineTrajectory
 from orbit_tracking.core.estimation.config import EstimatorConfig
 from orbit_tracking.core.estimation.knots import uniform_knots
 from orbit_tracking.core.estimation.motion_rows import jerk_rows, thrust_normal
+from orbit_tracking.core.estimation.telemetry_block import (
+    VELOCITY_ERROR_PRIOR,
+    TelemetryBlock,
+    error_prior_sigma,
+    telemetry_block,
+    velocity_error_axis,
+)
 from orbit_tracking.core.models.measurements import StationPose, predict, residual
 from orbit_tracking.core.models.systematic import CLOCK, BiasModel
 
@@ -93,41 +101,6 @@ class _StationBlock:
 
 
 @dataclass
-class _TelemetryBlock:
-    target: int
-    time: FloatArray
-    position: FloatArray
-    velocity: FloatArray
-    pw: sp.csr_matrix
-    vw: sp.csr_matrix
-    ew: sp.csr_matrix  # (3m, 3 n_e) error design (position)
-    edw: sp.csr_matrix
-    axis: SplineAxis
-    offset: int  # first error coefficient
-    prior_sigma: tuple[float, float]
-    noise: list[float]  # [position, velocity] white sigma
-    valid_p: NDArray[np.bool_]
-    valid_v: NDArray[np.bool_]
-    # a velocity error of its own (velocity from another source than the position): a
-    # piecewise-linear spline per axis, coefficients after those of e (None: e' only)
-    w_axis: SplineAxis | None = None
-    w_design: sp.csr_matrix | None = None  # (3m, 3 n_w)
-    declared_sigma: float = 1.0  # the telemetry's declared position sigma (median) [m]
-
-    @property
-    def n_error(self) -> int:
-        """Telemetry error coefficients: e, then w if any."""
-        return 3 * self.axis.n_coef + (0 if self.w_axis is None else 3 * self.w_axis.n_coef)
-
-    def velocity_error(self, beta: FloatArray) -> FloatArray:
-        """The separate velocity error at the telemetry epochs, (3m,) (zeros without)."""
-        if self.w_design is None or self.w_axis is None:
-            return np.zeros(3 * self.time.size)
-        o = self.offset + 3 * self.axis.n_coef
-        return np.asarray(self.w_design @ beta[o : o + 3 * self.w_axis.n_coef])
-
-
-@dataclass
 class _FixBlock:
     target: int
     time: FloatArray
@@ -146,32 +119,6 @@ def _row_contract(h: FloatArray, design: sp.csr_matrix) -> sp.csr_matrix:
     return (s @ design).tocsr()
 
 
-VELOCITY_ERROR_PRIOR = 0.1
-"""Prior sigma [m/s] of a separate telemetry velocity error's coefficients: weak (the
-velocity rows determine it), only so that a span without telemetry stays regular."""
-
-
-def velocity_error_axis(
-    t0: float, t1: float, cfg: EstimatorConfig, events: Sequence[float] = ()
-) -> SplineAxis:
-    """The separate telemetry velocity error's spline: piecewise linear, knots on the
-    multiples of ``telemetry_velocity_error_spacing`` s, and one at each event (free to
-    turn there: a velocity time-tag skew is the acceleration times the skew, which jumps
-    where the acceleration does; a piecewise-linear spline cannot jump, so the knot test
-    and ``e'``, which can, share that)."""
-    knots = uniform_knots(t0, t1, cfg.telemetry_velocity_error_spacing, events=events, degree=2)
-    return SplineAxis.from_interior(knots, t0, t1, 1)
-
-
-def _error_prior_sigma(tb: _TelemetryBlock) -> FloatArray:
-    """Prior sigma of every telemetry error coefficient: the declared position sigma for
-    ``e``, :data:`VELOCITY_ERROR_PRIOR` for a separate velocity error."""
-    n_e = 3 * tb.axis.n_coef
-    out = np.full(tb.n_error, tb.prior_sigma[0])
-    out[n_e:] = VELOCITY_ERROR_PRIOR
-    return out
-
-
 def _shift(mat: sp.spmatrix, offset: int, n: int) -> sp.csr_matrix:
     coo = mat.tocoo()
     return sp.csr_matrix((coo.data, (coo.row, coo.col + offset)), shape=(coo.shape[0], n))
@@ -188,6 +135,7 @@ class Problem:
         tel_axes: Mapping[int, SplineAxis] | None = None,
         tel_separate: Mapping[int, bool] | None = None,
         tel_events: Mapping[int, Sequence[float]] | None = None,
+        tel_delays: Mapping[int, bool] | None = None,
     ) -> None:
         self.cfg = cfg
         # the telemetry error may bend where the acceleration jumps (an error proportional
@@ -225,23 +173,25 @@ class Problem:
                         valid,
                     )
                 )
-        self.telemetry: list[_TelemetryBlock] = []
+        self.telemetry: list[TelemetryBlock] = []
         if cfg.use_telemetry:
             for tid, tel in obs.telemetry.items():
                 if tid not in self.trajs or len(tel) < 4:
                     continue
-                traj = self.trajs[tid]
                 if tel_axes and tid in tel_axes:
                     axis = tel_axes[tid]
                 else:
                     knots = uniform_knots(t0, t1, cfg.telemetry_error_spacing, degree=3)
                     axis = SplineAxis.from_interior(knots, t0, t1, 3)
-                e0, e1 = axis.design(tel.time, 0), axis.design(tel.time, 1)
-                i3 = sp.identity(3, format='csr')
                 separate = (
                     tel_separate.get(tid, False)
                     if tel_separate is not None
                     else cfg.telemetry_velocity_error == 'separate'
+                )
+                delays = (
+                    tel_delays.get(tid, False)
+                    if tel_delays is not None
+                    else cfg.telemetry_delays == 'on'
                 )
                 w_axis = (
                     velocity_error_axis(t0, t1, cfg, self.tel_events.get(tid, ()))
@@ -249,33 +199,7 @@ class Problem:
                     else None
                 )
                 self.telemetry.append(
-                    _TelemetryBlock(
-                        tid,
-                        tel.time,
-                        tel.position,
-                        tel.velocity,
-                        traj.world_design(tel.time, 0),
-                        traj.world_design(tel.time, 1),
-                        sp.kron(e0, i3, format='csr'),
-                        sp.kron(e1, i3, format='csr'),
-                        axis,
-                        n,
-                        (
-                            float(np.median(tel.position_sigma)),
-                            float(np.median(tel.velocity_sigma)),
-                        ),
-                        [
-                            float(np.median(tel.position_sigma)),
-                            float(np.median(tel.velocity_sigma)),
-                        ],
-                        np.asarray(np.isfinite(tel.position).all(axis=1)),
-                        np.asarray(np.isfinite(tel.velocity).all(axis=1)),
-                        w_axis,
-                        None
-                        if w_axis is None
-                        else sp.kron(w_axis.design(tel.time, 0), i3, format='csr'),
-                        float(np.median(tel.position_sigma)),
-                    )
+                    telemetry_block(tid, tel, self.trajs[tid], axis, n, w_axis, delays)
                 )
                 n += self.telemetry[-1].n_error
         self.fixes: list[_FixBlock] = []
@@ -428,7 +352,7 @@ class Problem:
             use_p, use_v = self.telemetry_use(tb)
             rp = dp[use_p].ravel() / sp_
             rv = dv[use_v].ravel() / sv_
-            prior_sig = _error_prior_sigma(tb)
+            prior_sig = error_prior_sigma(tb)
             prior = ecoef / prior_sig
             res.extend([rp, rv, -prior])
             tags.append(('telemetry_position', tb.target, use_p))
@@ -437,11 +361,14 @@ class Problem:
             if jacobian:
                 rows_p = np.flatnonzero(np.repeat(use_p, 3))
                 rows_v = np.flatnonzero(np.repeat(use_v, 3))
-                o = self.offsets[tb.target]
-                jp = _shift(tb.pw[rows_p], o, self.n) + _shift(tb.ew[rows_p], tb.offset, self.n)
-                jv = _shift(tb.vw[rows_v], o, self.n) + _shift(tb.edw[rows_v], tb.offset, self.n)
-                if tb.w_design is not None:
-                    jv = jv + _shift(tb.w_design[rows_v], tb.offset + 3 * tb.axis.n_coef, self.n)
+                jp, jv = tb.jacobians(
+                    self._coef(beta, tb.target),
+                    beta,
+                    rows_p,
+                    rows_v,
+                    self.offsets[tb.target],
+                    self.n,
+                )
                 jac.extend([jp / sp_, jv / sv_])
                 # the prior row is 0 - e / sigma: its model e / sigma has derivative +1 / sigma
                 pj = sp.diags(1.0 / prior_sig, format='csr')
@@ -528,18 +455,14 @@ class Problem:
     # -- what the robust loss and the residual gate act on ------------------------------
 
     def telemetry_residuals(
-        self, tb: _TelemetryBlock, beta: FloatArray
+        self, tb: TelemetryBlock, beta: FloatArray
     ) -> tuple[FloatArray, FloatArray]:
         """Telemetry position and velocity minus the model (trajectory plus telemetry
         error), (m, 3) each, not whitened (rows not measured hold garbage)."""
-        coef = self._coef(beta, tb.target)
-        ecoef = beta[tb.offset : tb.offset + 3 * tb.axis.n_coef]
-        m = tb.time.size
-        pred_p = (tb.pw @ coef + tb.ew @ ecoef).reshape(m, 3) + self.origin[tb.target]
-        pred_v = (tb.vw @ coef + tb.edw @ ecoef + tb.velocity_error(beta)).reshape(m, 3)
+        pred_p, pred_v = tb.predict(self._coef(beta, tb.target), beta, self.origin[tb.target])
         return np.nan_to_num(tb.position) - pred_p, np.nan_to_num(tb.velocity) - pred_v
 
-    def telemetry_use(self, tb: _TelemetryBlock) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    def telemetry_use(self, tb: TelemetryBlock) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
         """Telemetry epochs whose position and velocity are measured and not gated."""
         gp = self.gated.get(('telemetry_position', tb.target))
         gv = self.gated.get(('telemetry_velocity', tb.target))

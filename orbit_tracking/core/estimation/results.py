@@ -38,7 +38,9 @@ class TargetSolution:
     prior sigma [m] the telemetry error spline ended with (the declared position sigma,
     or its size estimated from the data; None without telemetry fused).
     ``jerk_density`` is the white-jerk prior's density [m^2/s^5] estimated for this
-    trajectory (None without the prior).
+    trajectory (None without the prior). ``telemetry_delays`` are the telemetry's
+    estimated time-tag delays of position and velocity and their sigmas, ``(d_p, sigma,
+    d_v, sigma)`` [s] (None when the window did not estimate them).
     """
 
     target_id: int
@@ -53,6 +55,7 @@ class TargetSolution:
     telemetry_velocity: str = ''
     telemetry_error_sigma: float | None = None
     jerk_density: float | None = None
+    telemetry_delays: tuple[float, float, float, float] | None = None
 
     @property
     def t0(self) -> float:

@@ -32,7 +32,7 @@ from orbit_tracking.core.estimation.config import EstimatorConfig
 if TYPE_CHECKING:
     from orbit_tracking.core.estimation.problem import Problem
 
-__all__ = ['VelocityErrorTest', 'velocity_error_test']
+__all__ = ['VelocityErrorTest', 'score_statistic', 'velocity_error_test']
 
 FloatArray = NDArray[np.float64]
 
@@ -69,34 +69,44 @@ def velocity_error_test(
 
     out = []
     for tb in prob.telemetry:
-        if tb.w_axis is not None or int(prob.telemetry_use(tb)[1].sum()) < MIN_EPOCHS:
+        if tb.w_axis is not None or tb.delays or int(prob.telemetry_use(tb)[1].sum()) < MIN_EPOCHS:
             continue
         aug, beta_a = rebuild(prob, beta, {}, {}, obs, cfg, t0, t1, {tb.target: True})
-        r, jac, _ = aug.evaluate(beta_a, True)
-        assert jac is not None
         ta = next(b for b in aug.telemetry if b.target == tb.target)
         assert ta.w_axis is not None
         o = ta.offset + 3 * ta.axis.n_coef
-        k = 3 * ta.w_axis.n_coef
-        mask = np.zeros(aug.n, dtype=bool)
-        mask[o : o + k] = True
-        jw = jac[:, np.flatnonzero(mask)].toarray()
-        jo = jac[:, np.flatnonzero(~mask)]
-        a = (jo.T @ jo).toarray()
-        a[np.diag_indices_from(a)] *= 1.0 + 1e-10
-        c = np.asarray(jo.T @ jw)
-        s = jw.T @ jw - c.T @ np.linalg.lstsq(a, c, rcond=1e-12)[0]
-        g = jw.T @ r
-        w, v = np.linalg.eigh(0.5 * (s + s.T))
-        keep = w > 1e-9 * max(float(w.max()), 1e-300)
-        if not keep.any():
+        score = score_statistic(aug, beta_a, np.arange(o, o + 3 * ta.w_axis.n_coef))
+        if score is None:
             continue
-        proj = v[:, keep].T @ g
-        stat = float(np.sum(proj**2 / w[keep]))
-        dof = int(keep.sum())
+        stat, dof = score
         out.append(
             VelocityErrorTest(
                 tb.target, stat, float(chi2.isf(cfg.telemetry_velocity_alpha, dof)), dof
             )
         )
     return out
+
+
+def score_statistic(
+    aug: Problem, beta: FloatArray, cols: NDArray[np.int_]
+) -> tuple[float, int] | None:
+    """The score statistic ``g^T S^+ g`` of the module docstring for the unknowns ``cols``
+    of ``aug`` at ``beta`` (where they are zero), and its degrees of freedom (the rank of
+    ``S``); None when the data do not determine them at all."""
+    r, jac, _ = aug.evaluate(beta, True)
+    assert jac is not None
+    mask = np.zeros(aug.n, dtype=bool)
+    mask[cols] = True
+    jw = jac[:, np.flatnonzero(mask)].toarray()
+    jo = jac[:, np.flatnonzero(~mask)]
+    a = (jo.T @ jo).toarray()
+    a[np.diag_indices_from(a)] *= 1.0 + 1e-10
+    c = np.asarray(jo.T @ jw)
+    s = jw.T @ jw - c.T @ np.linalg.lstsq(a, c, rcond=1e-12)[0]
+    g = jw.T @ r
+    w, v = np.linalg.eigh(0.5 * (s + s.T))
+    keep = w > 1e-9 * max(float(w.max()), 1e-300)
+    if not keep.any():
+        return None
+    proj = v[:, keep].T @ g
+    return float(np.sum(proj**2 / w[keep])), int(keep.sum())
