@@ -23,7 +23,11 @@ from scipy.stats import chi2
 
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.estimation.config import EstimatorConfig
-from orbit_tracking.core.estimation.telemetry_velocity import MIN_EPOCHS, score_statistic
+from orbit_tracking.core.estimation.telemetry_velocity import (
+    MIN_EPOCHS,
+    ScoreTest,
+    score_statistic,
+)
 
 if TYPE_CHECKING:
     from orbit_tracking.core.estimation.problem import Problem
@@ -34,27 +38,17 @@ FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True)
-class DelayTest:
+class DelayTest(ScoreTest):
     """The delay test on one target's telemetry residuals."""
-
-    target: int
-    statistic: float
-    threshold: float
-    dof: int
 
     @property
     def delays(self) -> bool:
         """True when the window should estimate the delays."""
-        return self.statistic > self.threshold
+        return self.significant
 
 
 def delay_test(
-    prob: Problem,
-    beta: FloatArray,
-    obs: Observations,
-    cfg: EstimatorConfig,
-    t0: float,
-    t1: float,
+    prob: Problem, beta: FloatArray, obs: Observations, cfg: EstimatorConfig, t0: float, t1: float
 ) -> list[DelayTest]:
     """The score test for every telemetry block of ``prob`` without delays, at the
     solution ``beta``."""

@@ -32,7 +32,7 @@ from orbit_tracking.core.estimation.config import EstimatorConfig
 if TYPE_CHECKING:
     from orbit_tracking.core.estimation.problem import Problem
 
-__all__ = ['VelocityErrorTest', 'score_statistic', 'velocity_error_test']
+__all__ = ['ScoreTest', 'VelocityErrorTest', 'score_statistic', 'velocity_error_test']
 
 FloatArray = NDArray[np.float64]
 
@@ -41,8 +41,9 @@ MIN_EPOCHS = 20
 
 
 @dataclass(frozen=True)
-class VelocityErrorTest:
-    """The test on one target's telemetry velocity residuals."""
+class ScoreTest:
+    """A score test on one target's telemetry residuals: its statistic, the chi-square
+    quantile it is held against and its degrees of freedom."""
 
     target: int
     statistic: float
@@ -50,9 +51,19 @@ class VelocityErrorTest:
     dof: int
 
     @property
+    def significant(self) -> bool:
+        """True when the residuals ask for the parameters tested."""
+        return self.statistic > self.threshold
+
+
+@dataclass(frozen=True)
+class VelocityErrorTest(ScoreTest):
+    """The test on one target's telemetry velocity residuals for ``w``."""
+
+    @property
     def separate(self) -> bool:
         """True when the velocity has an error of its own."""
-        return self.statistic > self.threshold
+        return self.significant
 
 
 def velocity_error_test(
@@ -64,7 +75,8 @@ def velocity_error_test(
     t1: float,
 ) -> list[VelocityErrorTest]:
     """The score test of the module docstring for every telemetry block of ``prob`` modelled
-    with ``e'`` only, at the solution ``beta``."""
+    with ``e'`` only (no separate velocity error, no time-tag delays: those take the
+    velocity error a skew gives, and ``w`` would share it), at the solution ``beta``."""
     from orbit_tracking.core.estimation.knot_refinement import rebuild
 
     out = []
