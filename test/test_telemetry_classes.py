@@ -33,10 +33,10 @@ GAP_LIMIT: dict[str, float] = {}
 
 
 KNOWN_FAILING = {
-    'time_skew': 'the time-tag delays are found, but biased by several of their sigmas (a '
-    'velocity error proportional to the acceleration is hard to tell from the error spline '
-    'in an ascent), and a few states of the incomplete segment are more than 5 sigma off '
-    '(issue 14, open)',
+    'time_skew': 'a position time-tag skew makes a telemetry error v * skew whose slope jumps '
+    'at every staging event, which the cubic error spline cannot follow: 28 states of the '
+    'incomplete segment are more than 5 sigma off (issue 14, open; the time-tag delays, '
+    'telemetry_delays, are off by default)',
 }
 
 

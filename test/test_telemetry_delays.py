@@ -1,4 +1,4 @@
-"""Issue 14: time-tag delays of the telemetry (``telemetry_delays``).
+"""Issue 14: time-tag delays of the telemetry (``telemetry_delays: auto``; off by default).
 
 A manoeuvring aircraft (robustness family, seed 4: two ships with a radar each, GPS at
 2 Hz; its first 60 s window, with a turn) whose GPS positions are tagged ``d_p`` late and
@@ -28,7 +28,7 @@ def _window(model: str | None, cfg: EstimatorConfig):
 
 @pytest.mark.timeout(120)
 def test_a_time_tag_skew_is_detected_and_its_delays_recovered():
-    case, est = _window(None, EstimatorConfig())
+    case, est = _window(None, EstimatorConfig(telemetry_delays='auto'))
     assert case.draw.telemetry_model == 'time_skew', case.draw.summary
     assert est.success, est.message
     assert 'time-tag delays estimated' in est.message, est.message
@@ -43,7 +43,7 @@ def test_a_time_tag_skew_is_detected_and_its_delays_recovered():
 
 @pytest.mark.timeout(120)
 def test_white_telemetry_keeps_the_model_without_delays():
-    _, est = _window('white', EstimatorConfig())
+    _, est = _window('white', EstimatorConfig(telemetry_delays='auto'))
     assert est.success, est.message
     assert 'time-tag delays not estimated' in est.message, est.message
     assert est.targets[0].telemetry_delays is None

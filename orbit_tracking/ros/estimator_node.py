@@ -262,9 +262,10 @@ class EstimatorNode(StationInputs):
             telemetry_delays=declare(
                 self,
                 'telemetry_delays',
-                'auto',
-                'Time-tag delays of the telemetry position and velocity: auto (estimated in a '
-                'window whose residuals ask for them, by a score test), off or on.',
+                'off',
+                'Time-tag delays of the telemetry position and velocity: off (default), auto '
+                '(estimated in a window whose residuals ask for them, by a score test; it also '
+                'fires on errors that are not a skew, see docs/ESTIMATOR.md) or on.',
                 read_only=True,
             ),
             estimate_telemetry_error=declare(
