@@ -117,8 +117,7 @@ class EstimatorConfig:
         asks for them (:mod:`~orbit_tracking.core.estimation.telemetry_delays`); ``off``
         (default): never; ``on``: always. Off by default: on the robustness benchmark the
         test also fires on telemetry errors that are not a skew (random walk, separate
-        velocity source, bias and drift, jumps), and those windows then publish sigmas far
-        too small (docs/ESTIMATOR.md).
+        velocity source, bias and drift, jumps); see docs/ESTIMATOR.md.
     nonlinear_sigma : float
         Where three sigma of a state along its longest axis change a nearby station value
         to second order by more than this many of its sigmas (the row's, or the fitted

@@ -72,7 +72,6 @@ from orbit_tracking.core.estimation.observability import (
     isotropic_note,
     isotropic_spans,
 )
-from orbit_tracking.core.estimation.priors import ERROR_SIGMA_RANGE
 from orbit_tracking.core.estimation.problem import Problem
 from orbit_tracking.core.estimation.results import Estimate, TargetSolution, state_covariance
 from orbit_tracking.core.estimation.telemetry_block import TelemetryBlock
@@ -273,13 +272,6 @@ def _estimate_once(
         add = {t.target: True for t in d_tests if t.delays}
         if add:
             prob, beta = rebuild(prob, out.beta, {}, {}, obs, cfg, t0, t1, tel_delays=add)
-            # the slow error spline took what it could of the skew in the first solve: it
-            # starts again from nothing, so that the delays take the skew and e only what
-            # the evidence update then finds left (it may grow tenfold per round)
-            for tb in prob.telemetry:
-                if tb.target in add:
-                    beta[tb.offset : tb.offset + 3 * tb.axis.n_coef] = 0.0
-                    tb.prior_sigma = (ERROR_SIGMA_RANGE[0] * tb.declared_sigma, tb.prior_sigma[1])
             out, it2, h2 = solve(prob, beta, cfg, warm_up=False)
             iterations += it2
             halvings += h2

@@ -75,13 +75,12 @@ def velocity_error_test(
     t1: float,
 ) -> list[VelocityErrorTest]:
     """The score test of the module docstring for every telemetry block of ``prob`` modelled
-    with ``e'`` only (no separate velocity error, no time-tag delays: those take the
-    velocity error a skew gives, and ``w`` would share it), at the solution ``beta``."""
+    with ``e'`` only (no separate velocity error yet), at the solution ``beta``."""
     from orbit_tracking.core.estimation.knot_refinement import rebuild
 
     out = []
     for tb in prob.telemetry:
-        if tb.w_axis is not None or tb.delays or int(prob.telemetry_use(tb)[1].sum()) < MIN_EPOCHS:
+        if tb.w_axis is not None or int(prob.telemetry_use(tb)[1].sum()) < MIN_EPOCHS:
             continue
         aug, beta_a = rebuild(prob, beta, {}, {}, obs, cfg, t0, t1, {tb.target: True})
         ta = next(b for b in aug.telemetry if b.target == tb.target)
