@@ -17,6 +17,7 @@ from orbit_tracking.core.estimation import estimator as estimator_module
 from orbit_tracking.core.estimation.config import EstimatorConfig
 from orbit_tracking.core.estimation.estimator import estimate
 from orbit_tracking.tools.bench.robustness_draw import _case
+from orbit_tracking.tools.estimate import _window_summary
 
 SEED, T0, T1 = 4, 0.0, 60.0
 
@@ -39,6 +40,8 @@ def test_a_time_tag_skew_is_detected_and_its_delays_recovered():
     assert 0.0 < s_p < 0.01 and 0.0 < s_v < 0.01, delays
     assert abs(d_p - params['position_delay_s']) < 4.0 * s_p + 1e-3, (delays, params)
     assert abs(d_v - params['velocity_delay_s']) < 4.0 * s_v + 1e-3, (delays, params)
+    # the offline summary reports them per target
+    assert _window_summary(est)['telemetry_delays_s'] == {0: list(delays)}
 
 
 @pytest.mark.timeout(120)
@@ -47,6 +50,7 @@ def test_white_telemetry_keeps_the_model_without_delays():
     assert est.success, est.message
     assert 'time-tag delays not estimated' in est.message, est.message
     assert est.targets[0].telemetry_delays is None
+    assert _window_summary(est)['telemetry_delays_s'] == {}
 
 
 @pytest.mark.timeout(120)
