@@ -26,6 +26,7 @@ from orbit_tracking.core.estimation.telemetry_block import (
     VELOCITY_ERROR_PRIOR,
     TelemetryBlock,
     error_prior_sigma,
+    shift_columns,
     telemetry_block,
     velocity_error_axis,
 )
@@ -117,11 +118,6 @@ def _row_contract(h: FloatArray, design: sp.csr_matrix) -> sp.csr_matrix:
     indices = (3 * np.arange(m)[:, None, None] + np.arange(3)[None, None, :]).repeat(k, axis=1)
     s = sp.csr_matrix((h.ravel(), indices.ravel(), indptr), shape=(m * k, 3 * m))
     return (s @ design).tocsr()
-
-
-def _shift(mat: sp.spmatrix, offset: int, n: int) -> sp.csr_matrix:
-    coo = mat.tocoo()
-    return sp.csr_matrix((coo.data, (coo.row, coo.col + offset)), shape=(coo.shape[0], n))
 
 
 class Problem:
@@ -334,7 +330,7 @@ class Problem:
                 hw = h / b.sigmas[:, :, None]
                 jm = _row_contract(hw[:, :, :3], b.pw) + _row_contract(hw[:, :, 3:], b.vw)
                 jm = jm[np.flatnonzero(use.ravel())]
-                jm = _shift(jm, self.offsets[b.target], self.n)
+                jm = shift_columns(jm, self.offsets[b.target], self.n)
                 if dpar is not None:
                     dw = (dpar / b.sigmas[:, :, None])[use]  # (rows, p)
                     cols = self.bias_offset + np.asarray(b.bias_index)
@@ -372,7 +368,7 @@ class Problem:
                 jac.extend([jp / sp_, jv / sv_])
                 # the prior row is 0 - e / sigma: its model e / sigma has derivative +1 / sigma
                 pj = sp.diags(1.0 / prior_sig, format='csr')
-                jac.append(_shift(pj, tb.offset, self.n))
+                jac.append(shift_columns(pj, tb.offset, self.n))
                 eye = np.eye(3)
                 for valid, sig, vel in ((use_p, sp_, False), (use_v, sv_, True)):
                     nv = int(valid.sum())
@@ -392,7 +388,7 @@ class Problem:
             if jacobian:
                 wblk = sp.block_diag(list(fb.whiten), format='csr')
                 jm = (wblk @ fb.pw)[np.flatnonzero(np.repeat(use, 3))]
-                jac.append(_shift(jm, self.offsets[fb.target], self.n))
+                jac.append(shift_columns(jm, self.offsets[fb.target], self.n))
                 wv = fb.whiten[use].reshape(-1, 3)
                 tt = np.repeat(fb.time[use], 3)
                 rows.append((fb.target, tt, wv, np.zeros_like(wv), False))
@@ -414,7 +410,7 @@ class Problem:
                     + _row_contract(jv / sig, dv)
                     + _row_contract(ja / sig, da)
                 )
-                jac.append(_shift(jm, self.offsets[tid], self.n))
+                jac.append(shift_columns(jm, self.offsets[tid], self.n))
                 z = np.zeros((c.size, 3))
                 rows.append((-1, np.zeros(c.size), z, z, False))
         for tid, mj in self.jerk.items():
@@ -425,7 +421,7 @@ class Problem:
             res.append(-w * (mj @ self._coef(beta, tid)))
             tags.append(('jerk_prior', tid, np.ones(mj.shape[0], dtype=bool)))
             if jacobian:
-                jac.append(_shift(sp.csr_matrix(w * mj), self.offsets[tid], self.n))
+                jac.append(shift_columns(sp.csr_matrix(w * mj), self.offsets[tid], self.n))
                 z = np.zeros((mj.shape[0], 3))
                 rows.append((-1, np.zeros(mj.shape[0]), z, z, False))
         if self.biases:

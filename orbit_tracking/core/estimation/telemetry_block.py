@@ -40,6 +40,7 @@ __all__ = [
     'VELOCITY_ERROR_PRIOR',
     'TelemetryBlock',
     'error_prior_sigma',
+    'shift_columns',
     'telemetry_block',
     'velocity_error_axis',
 ]
@@ -139,16 +140,19 @@ class TelemetryBlock:
         """Derivatives of the modelled position rows ``rows_p`` and velocity rows
         ``rows_v`` (indices into the 3m components) by all ``n`` unknowns (not whitened)."""
         pw, vw = self.pw, self.vw
+        d_p, d_v = self.delay_values(beta)
         if self.aw is not None:
-            d_p, d_v = self.delay_values(beta)
             pw = pw - d_p * vw + 0.5 * d_p**2 * self.aw
             vw = vw - d_v * self.aw
-        jp = _shift(pw[rows_p], traj_offset, n) + _shift(self.ew[rows_p], self.offset, n)
-        jv = _shift(vw[rows_v], traj_offset, n) + _shift(self.edw[rows_v], self.offset, n)
+        jp = shift_columns(pw[rows_p], traj_offset, n) + shift_columns(
+            self.ew[rows_p], self.offset, n
+        )
+        jv = shift_columns(vw[rows_v], traj_offset, n) + shift_columns(
+            self.edw[rows_v], self.offset, n
+        )
         if self.w_design is not None:
-            jv = jv + _shift(self.w_design[rows_v], self.offset + 3 * self.axis.n_coef, n)
+            jv = jv + shift_columns(self.w_design[rows_v], self.offset + 3 * self.axis.n_coef, n)
         if self.aw is not None:
-            d_p, _ = self.delay_values(beta)
             a = np.asarray(self.aw @ coef)
             dd_p = -np.asarray(self.vw @ coef) + d_p * a
             o = self.delay_offset
@@ -226,6 +230,7 @@ def telemetry_block(
     )
 
 
-def _shift(mat: sp.spmatrix, offset: int, n: int) -> sp.csr_matrix:
+def shift_columns(mat: sp.spmatrix, offset: int, n: int) -> sp.csr_matrix:
+    """``mat`` as rows of an ``n``-column matrix, its columns moved right by ``offset``."""
     coo = mat.tocoo()
     return sp.csr_matrix((coo.data, (coo.row, coo.col + offset)), shape=(coo.shape[0], n))
