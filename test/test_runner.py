@@ -67,3 +67,43 @@ def test_runtime_error_with_the_context_up_is_raised() -> None:
     assert proc.returncode != 0
     assert 'Unable to convert call argument' in proc.stderr
     assert 'clean exit' not in proc.stdout
+
+
+HANGING_CLEANUP = textwrap.dedent(
+    """
+    import time
+    from rclpy.node import Node
+    from orbit_tracking.ros import runner
+
+    runner.CLEANUP_LIMIT_S = 1.0
+
+    class Stuck(Node):
+        def __init__(self):
+            super().__init__('runner_stuck_test')
+            self.create_timer(0.05, self.stop)
+
+        def stop(self):
+            raise KeyboardInterrupt
+
+        def destroy_node(self):
+            time.sleep(60.0)  # as rclpy's destroy_node once hung in CI
+
+    runner.run_node(Stuck, [])
+    print('returned')
+    """
+)
+
+
+@pytest.mark.dds
+def test_a_hanging_cleanup_ends_the_process_with_a_stack_dump() -> None:
+    env = dict(os.environ, PYTHONPATH=f'{ROOT}{os.pathsep}{os.environ.get("PYTHONPATH", "")}')
+    proc = subprocess.run(
+        [sys.executable, '-c', HANGING_CLEANUP],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
+    assert proc.returncode == 1, proc.stderr
+    assert 'returned' not in proc.stdout
+    assert 'destroy_node' in proc.stderr  # where it hung

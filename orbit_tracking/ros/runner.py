@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import faulthandler
 import sys
 import time
 from collections.abc import Callable, Iterable
@@ -18,6 +19,11 @@ __all__ = ['context_goes_down', 'ready_to_stream', 'run_node']
 
 SHUTDOWN_GRACE_S = 2.0
 """How long a RuntimeError out of ``spin`` waits for a signal-driven shutdown to show."""
+
+CLEANUP_LIMIT_S = 15.0
+"""How long the clean-up after ``spin`` (executor, node, context) may take before the
+process dumps every thread's stack to stderr and exits with status 1. A clean-up stuck in
+rclpy's ``destroy_node`` (seen once in CI, 30 s and more) must not keep a stopped node alive."""
 
 
 def context_goes_down(grace_s: float = SHUTDOWN_GRACE_S) -> bool:
@@ -40,6 +46,7 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> None
     """
     rclpy.init(args=args)
     node = None
+    executor = None
     code = 0
     try:
         try:
@@ -72,9 +79,14 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> None
         if not context_goes_down(SHUTDOWN_GRACE_S):
             raise
     finally:
+        # a C-level timer: it fires even when the clean-up holds the GIL
+        faulthandler.dump_traceback_later(CLEANUP_LIMIT_S, exit=True)
+        if executor is not None:
+            executor.shutdown(timeout_sec=1.0)
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+        faulthandler.cancel_dump_traceback_later()
         if code:
             sys.exit(code)
 
