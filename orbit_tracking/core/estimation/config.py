@@ -152,6 +152,11 @@ class EstimatorConfig:
         Rounds of measurement-driven knot insertion after the solve (0 = off).
     refine_alpha : float
         Family-wise false-alarm probability of that knot test.
+    refine_events : bool
+        Let that test also insert events (a knot of multiplicity ``degree - 1`` on every
+        axis: the acceleration may jump there) where the measurements ask for one, outside
+        the incomplete segments (:func:`~orbit_tracking.core.estimation.knot_refinement.
+        refine_knots`).
     prune_z : float
         After the first solve, a single interior knot whose derivative jump is below this
         many of its standard deviations is dropped (the measurements do not support it);
@@ -221,6 +226,7 @@ class EstimatorConfig:
     refine_rounds: int = 4
     prune_z: float = 0.0
     refine_alpha: float = 0.01
+    refine_events: bool = True
     biases: tuple[BiasParameter, ...] = ()
     bias_observability: float = 0.9
     thrust_along_velocity: float = 0.0

@@ -326,7 +326,7 @@ def _estimate_once(
                 'does not fit the data'
             )
             break
-        new_axes, new_tel = refine_knots(prob, r, jac, cov, cfg)
+        new_axes, new_tel = refine_knots(prob, r, jac, cov, cfg, segments)
         if not new_axes and not new_tel:
             break
         prob, beta = rebuild(prob, out.beta, new_axes, new_tel, obs, cfg, t0, t1)

@@ -24,7 +24,14 @@ from orbit_tracking.core.estimation.knots import (
 )
 from orbit_tracking.core.estimation.problem import Problem
 
-__all__ = ['choose_knots_safely', 'polynomial_selection', 'prune_knots', 'rebuild', 'refine_knots']
+__all__ = [
+    'choose_knots_safely',
+    'event_scores',
+    'polynomial_selection',
+    'prune_knots',
+    'rebuild',
+    'refine_knots',
+]
 
 FloatArray = NDArray[np.float64]
 
@@ -79,6 +86,70 @@ def _knot_scores(
     return out
 
 
+def event_scores(
+    axes: Sequence[SplineAxis],
+    ts: FloatArray,
+    up: FloatArray,
+    uv: FloatArray,
+    ridx: NDArray[np.intp],
+    r: FloatArray,
+    jac: sp.csr_matrix,
+    cov: FloatArray,
+    taus: FloatArray,
+) -> list[tuple[float, float, int]]:
+    """Score statistic of an *event* at each of ``taus``: a knot of multiplicity
+    ``degree - 1`` inserted at ``tau`` on all three axes at once (the acceleration may jump
+    there: an engine cut-off or ignition, the start or end of a turn).
+
+    ``up``/``uv`` (n, 3) are the whitened derivatives of the rows by each axis' value and
+    rate (in the spline frame), ``ts`` their sorted times. The columns are the refined
+    splines' basis functions around ``tau``; projected on what the current spline already
+    represents (``J (J^T J)^-1 J^T``), they leave ``dof = 3 (degree - 1)`` new directions,
+    and ``s = g^T G^+ g`` (``g`` their products with the residuals, ``G`` their projected
+    Gram matrix on those directions) is chi-square(``dof``) under the current knots.
+    Returns ``(tau, s, dof)`` for each tau with enough rows.
+    """
+    from scipy.interpolate import BSpline
+
+    out = []
+    for tau in taus:
+        cols, lo_t, hi_t = [], np.inf, -np.inf
+        parts = []
+        for ax in axes:
+            p = ax.degree
+            m = p - 1
+            idx = int(np.searchsorted(ax.knots, tau))
+            refined = np.insert(ax.knots, idx, np.full(m, tau))
+            j0 = max(idx - p - 1, 0)
+            j1 = min(idx + m + 1, refined.size - p - 1)
+            parts.append((refined, j0, j1, p))
+            lo_t = min(lo_t, float(refined[j0]))
+            hi_t = max(hi_t, float(refined[min(j1 + p, refined.size - 1)]))
+        i0, i1 = np.searchsorted(ts, [lo_t, hi_t])
+        dof = sum(part[3] - 1 for part in parts)
+        if i1 - i0 < 2 * dof:
+            continue
+        tt = ts[i0:i1]
+        for a, (refined, j0, j1, p) in enumerate(parts):
+            for j in range(j0, j1):
+                b = BSpline.basis_element(refined[j : j + p + 2], extrapolate=False)
+                val, rate = np.nan_to_num(b(tt)), np.nan_to_num(b(tt, nu=1))
+                cols.append(val * up[i0:i1, a] + rate * uv[i0:i1, a])
+        c_mat = np.column_stack(cols)
+        rows = ridx[i0:i1]
+        g = c_mat.T @ r[rows]
+        jc = np.asarray(jac[rows].T @ c_mat)
+        gram = c_mat.T @ c_mat - jc.T @ (cov @ jc)
+        w, v = np.linalg.eigh(0.5 * (gram + gram.T))
+        keep = np.argsort(w)[::-1][:dof]
+        keep = keep[w[keep] > 1e-9 * max(float(w.max()), 1e-300)]
+        if keep.size == 0:
+            continue
+        z = v[:, keep].T @ g
+        out.append((float(tau), float(np.sum(z * z / w[keep])), int(keep.size)))
+    return out
+
+
 def _with_knots(ax: SplineAxis, new: Sequence[float]) -> SplineAxis:
     return SplineAxis.from_interior(
         np.sort(np.concatenate([ax.interior, np.asarray(new, dtype=float)])),
@@ -88,12 +159,89 @@ def _with_knots(ax: SplineAxis, new: Sequence[float]) -> SplineAxis:
     )
 
 
+def _interval(ax: SplineAxis, tau: float) -> tuple[float, float]:
+    brk = np.unique(ax.knots)
+    i = int(np.clip(np.searchsorted(brk, tau) - 1, 0, brk.size - 2))
+    return float(brk[i]), float(brk[i + 1])
+
+
+def _events(
+    prob: Problem,
+    traj_c: Sequence[tuple[int, int, float, float]],
+    limit: float,
+    rows: tuple[FloatArray, FloatArray, FloatArray, FloatArray],
+    r: FloatArray,
+    jac: sp.csr_matrix,
+    cov: FloatArray,
+    cfg: EstimatorConfig,
+    avoid: Mapping[int, Sequence[tuple[float, float]]],
+) -> dict[int, list[tuple[float, float, float]]]:
+    """Events the failing knot intervals ask for: per target, ``(tau, lo, hi)`` with
+    [lo, hi] the run of failing intervals it replaces (see :func:`refine_knots`)."""
+    from scipy.stats import chi2
+
+    tgt, tim, hp, hv = rows
+    q = cfg.knots.min_spacing  # the instants tried lie on this grid (edge-stable)
+    tests: list[tuple[int, float, float, list[tuple[float, float, int]]]] = []
+    n_tried = 0
+    for tid, traj in prob.trajs.items():
+        flagged = sorted(
+            {_interval(traj.axes[a], tau) for k, a, tau, sc in traj_c if k == tid and sc > limit}
+        )
+        if not flagged:
+            continue
+        regions: list[list[float]] = []  # [lo, hi, intervals]
+        for lo, hi in flagged:
+            if regions and lo <= regions[-1][1] + 1e-9:
+                regions[-1][1] = max(regions[-1][1], hi)
+                regions[-1][2] += 1
+            else:
+                regions.append([lo, hi, 1])
+        # an event misfits the few intervals its jump reaches; a longer run of failing
+        # intervals is a spline too stiff all along (or a first fit far off), not an event
+        p = traj.axes[0].degree
+        regions = [reg for reg in regions if reg[2] <= p + 1]
+        sel = np.flatnonzero(tgt == tid)
+        order = sel[np.argsort(tim[sel], kind='stable')]
+        ts = tim[order]
+        up, uv = hp[order] @ traj.rotation, hv[order] @ traj.rotation
+        knots = np.unique(np.concatenate([ax.knots for ax in traj.axes]))
+        segs = list(avoid.get(tid, ()))
+
+        def allowed(g: FloatArray, knots: FloatArray = knots, segs: list = segs) -> FloatArray:
+            near = np.min(np.abs(g[:, None] - knots[None, :]), axis=1)
+            ok = near >= q
+            for a0, a1 in segs:
+                ok &= (g < a0) | (g > a1)
+            return g[ok]
+
+        for lo, hi, _ in regions:
+            step = max(q, q * np.ceil((hi - lo) / 16.0 / q))
+            coarse = allowed(step * np.arange(np.ceil(lo / step), np.floor(hi / step) + 1))
+            sc = event_scores(traj.axes, ts, up, uv, order, r, jac, cov, coarse)
+            if not sc:
+                continue
+            best = min(sc, key=lambda x: chi2.logsf(x[1], x[2]))[0]
+            k0, k1 = np.ceil((best - step) / q), np.floor((best + step) / q)
+            fine = allowed(q * np.arange(k0, k1 + 1))
+            sc += event_scores(traj.axes, ts, up, uv, order, r, jac, cov, fine)
+            n_tried += len(sc)
+            tests.append((tid, lo, hi, sc))
+    found: dict[int, list[tuple[float, float, float]]] = {}
+    for tid, lo, hi, sc in tests:
+        tau, s, dof = min(sc, key=lambda x: chi2.logsf(x[1], x[2]))
+        if chi2.sf(s, dof) < cfg.refine_alpha / n_tried:
+            found.setdefault(tid, []).append((tau, lo, hi))
+    return found
+
+
 def refine_knots(
     prob: Problem,
     r: FloatArray,
     jac: sp.csr_matrix,
     cov: FloatArray,
     cfg: EstimatorConfig,
+    avoid: Mapping[int, Sequence[tuple[float, float]]] | None = None,
 ) -> tuple[dict[int, list[SplineAxis]], dict[int, SplineAxis]]:
     """Knots the measurements ask for (beyond the paper).
 
@@ -105,6 +253,15 @@ def refine_knots(
     could not show (its noise hides model errors the measurements resolve). The same
     test runs on the telemetry error spline (each component), so a drift that bends
     faster than its initial knots gets knots too instead of an optimistic covariance.
+
+    Where intervals fail that test, an *event* (the acceleration jumping: an engine
+    cut-off or ignition the rough trajectory did not show, a turn starting) may explain
+    them better than midpoint knots: with ``cfg.refine_events``, each run of failing
+    intervals is searched for the instant whose event test (:func:`event_scores`) is most
+    significant; one beyond its Bonferroni quantile at ``refine_alpha`` (over every instant
+    tried) is inserted instead of that run's midpoint knots. Not inside ``avoid`` (per
+    target: its incomplete segments, where the few measurements cannot pin an event and
+    its freedom only lets the fit wander).
 
     Returns the refined trajectory axes and telemetry error axes, per target (only those
     that changed).
@@ -141,12 +298,24 @@ def refine_knots(
     if n_cand == 0:
         return {}, {}
     limit = float(chi2.isf(cfg.refine_alpha / n_cand, 1))
+    events: dict[int, list[tuple[float, float, float]]] = {}
+    if cfg.refine_events:
+        events = _events(prob, traj_c, limit, (tgt, tim, hp, hv), r, jac, cov, cfg, avoid or {})
     out: dict[int, list[SplineAxis]] = {}
     for tid, traj in prob.trajs.items():
         axes = list(traj.axes)
         changed = False
+        found = events.get(tid, [])
         for a in range(3):
-            new = [tau for k, ax_, tau, sc in traj_c if k == tid and ax_ == a and sc > limit]
+            new = [
+                tau
+                for k, ax_, tau, sc in traj_c
+                if k == tid
+                and ax_ == a
+                and sc > limit
+                and not any(lo <= tau <= hi for _, lo, hi in found)
+            ]
+            new += [tau for tau, _, _ in found for _ in range(axes[a].degree - 1)]
             if new:
                 axes[a] = _with_knots(axes[a], new)
                 changed = True

@@ -1,0 +1,72 @@
+"""The event test of the knot refinement (``knot_refinement.event_scores``): an
+acceleration jump the knots cannot follow is found where it is, and on a trajectory the
+knots do represent the statistic behaves as its chi-square law says."""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.stats import chi2
+
+from orbit_tracking.core.estimation.bspline import SplineAxis
+from orbit_tracking.core.estimation.knot_refinement import event_scores
+
+SIGMA = 0.05  # m, position noise
+RATE = 50.0  # Hz
+
+
+def _fit(truth: np.ndarray, rng: np.random.Generator):
+    """Least-squares fit of a degree-4 spline with knots every 2 s to noisy positions of
+    the three axes; what the score test needs (whitened residuals, Jacobian, covariance)."""
+    t = np.arange(0.0, 20.0 + 1e-9, 1.0 / RATE)
+    axis = SplineAxis.from_interior(np.arange(2.0, 19.0, 2.0), 0.0, 20.0, 4)
+    b = axis.design(t)
+    n, k = t.size, axis.n_coef
+    y = truth(t) + SIGMA * rng.standard_normal((n, 3))
+    # rows: all samples of axis 0, then axis 1, then axis 2 (whitened)
+    jac = sp.block_diag([b / SIGMA] * 3, format='csr')
+    rhs = (y / SIGMA).T.reshape(-1)
+    normal = (jac.T @ jac).toarray()
+    cov = np.linalg.inv(normal)
+    beta = cov @ (jac.T @ rhs)
+    r = rhs - jac @ beta
+    # per row: its time, and its whitened derivative by each axis' value (no rate rows)
+    ts = np.tile(t, 3)
+    up = np.zeros((3 * n, 3))
+    for a in range(3):
+        up[a * n : (a + 1) * n, a] = 1.0 / SIGMA
+    order = np.argsort(ts, kind='stable')
+    return axis, ts[order], up[order], np.zeros_like(up), order, r, jac, cov
+
+
+def _ramp(t: np.ndarray, jump: np.ndarray, t_event: float) -> np.ndarray:
+    """A smooth path whose acceleration jumps by ``jump`` at ``t_event``."""
+    base = np.column_stack([100.0 * t + 2.0 * t**2, -50.0 * t, 0.3 * t**3 / 6.0])
+    return base + 0.5 * np.maximum(t - t_event, 0.0)[:, None] ** 2 * jump[None, :]
+
+
+def test_an_acceleration_jump_is_found_at_its_instant() -> None:
+    rng = np.random.default_rng(1)
+    t_event = 9.3  # between knots (8, 10)
+    axis, ts, up, uv, order, r, jac, cov = _fit(
+        lambda t: _ramp(t, np.array([-20.0, 5.0, 0.0]), t_event), rng
+    )
+    taus = np.arange(8.05, 10.0, 0.05)
+    scores = event_scores([axis] * 3, ts, up, uv, order, r, jac, cov, taus)
+    assert len(scores) == taus.size
+    assert {dof for _, _, dof in scores} == {9}  # 3 axes x (degree - 1)
+    best_tau, best_s, dof = max(scores, key=lambda x: x[1])
+    assert abs(best_tau - t_event) <= 0.1
+    assert chi2.sf(best_s, dof) < 1e-12
+
+
+def test_without_a_jump_the_statistic_follows_its_law() -> None:
+    rng = np.random.default_rng(2)
+    values = []
+    for _ in range(40):
+        axis, ts, up, uv, order, r, jac, cov = _fit(lambda t: _ramp(t, np.zeros(3), 0.0), rng)
+        (s,) = event_scores([axis] * 3, ts, up, uv, order, r, jac, cov, np.array([9.3]))
+        values.append(s[1])
+    # chi-square(9): mean 9, sd 4.2; the mean of 40 within 4 of its standard errors
+    assert abs(np.mean(values) - 9.0) < 4.0 * np.sqrt(18.0 / 40.0)
+    assert max(values) < chi2.isf(1e-4, 9)
