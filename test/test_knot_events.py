@@ -9,7 +9,11 @@ import scipy.sparse as sp
 from scipy.stats import chi2
 
 from orbit_tracking.core.estimation.bspline import SplineAxis
-from orbit_tracking.core.estimation.knot_refinement import event_scores
+from orbit_tracking.core.estimation.knot_refinement import (
+    event_scores,
+    insertion_score,
+    significance,
+)
 
 SIGMA = 0.05  # m, position noise
 RATE = 50.0  # Hz
@@ -21,7 +25,7 @@ def _fit(truth: np.ndarray, rng: np.random.Generator):
     t = np.arange(0.0, 20.0 + 1e-9, 1.0 / RATE)
     axis = SplineAxis.from_interior(np.arange(2.0, 19.0, 2.0), 0.0, 20.0, 4)
     b = axis.design(t)
-    n, k = t.size, axis.n_coef
+    n = t.size
     y = truth(t) + SIGMA * rng.standard_normal((n, 3))
     # rows: all samples of axis 0, then axis 1, then axis 2 (whitened)
     jac = sp.block_diag([b / SIGMA] * 3, format='csr')
@@ -70,3 +74,28 @@ def test_without_a_jump_the_statistic_follows_its_law() -> None:
     # chi-square(9): mean 9, sd 4.2; the mean of 40 within 4 of its standard errors
     assert abs(np.mean(values) - 9.0) < 4.0 * np.sqrt(18.0 / 40.0)
     assert max(values) < chi2.isf(1e-4, 9)
+
+
+def test_an_acceleration_jump_is_explained_better_by_an_event_than_by_midpoint_knots() -> None:
+    """The rule that lets an event replace midpoint knots: a smaller p-value."""
+    rng = np.random.default_rng(3)
+    axis, ts, up, uv, order, r, jac, cov = _fit(
+        lambda t: _ramp(t, np.array([-20.0, 5.0, 0.0]), 9.3), rng
+    )
+    tau = np.array([9.3])
+    ((_, s_ev, dof_ev),) = event_scores([axis] * 3, ts, up, uv, order, r, jac, cov, tau)
+    mids = [np.array([9.0]), np.array([9.0]), np.array([], dtype=float)]
+    alt = insertion_score([axis] * 3, mids, ts, up, uv, order, r, jac, cov)
+    assert alt is not None and alt[1] == 2
+    assert significance(s_ev, dof_ev) > significance(*alt)
+
+
+def test_significance_orders_tails_like_the_chi_square_law() -> None:
+    """Where the tail probabilities are representable they order as the deviate does; far
+    beyond, the deviate stays finite and increasing."""
+    cases = [(30.0, 9), (25.0, 2), (12.0, 1), (40.0, 20)]
+    by_p = sorted(cases, key=lambda c: chi2.logsf(*c))
+    by_z = sorted(cases, key=lambda c: -significance(*c))
+    assert by_p == by_z
+    assert abs(significance(chi2.isf(0.01, 9), 9) - 2.326) < 0.05
+    assert 100.0 < significance(1e6, 9) < significance(2e6, 9) < np.inf

@@ -27,6 +27,8 @@ from orbit_tracking.core.estimation.problem import Problem
 __all__ = [
     'choose_knots_safely',
     'event_scores',
+    'insertion_score',
+    'significance',
     'polynomial_selection',
     'prune_knots',
     'rebuild',
@@ -86,6 +88,70 @@ def _knot_scores(
     return out
 
 
+def insertion_score(
+    axes: Sequence[SplineAxis],
+    inserts: Sequence[FloatArray],
+    ts: FloatArray,
+    up: FloatArray,
+    uv: FloatArray,
+    ridx: NDArray[np.intp],
+    r: FloatArray,
+    jac: sp.csr_matrix,
+    cov: FloatArray,
+) -> tuple[float, int] | None:
+    """Score statistic ``(s, dof)`` of inserting the knots ``inserts[a]`` into ``axes[a]``
+    (all at once), or None with too few rows.
+
+    ``up``/``uv`` (n, 3) are the whitened derivatives of the rows by each axis' value and
+    rate (in the spline frame), ``ts`` their sorted times, ``ridx`` their rows in ``r`` and
+    ``jac``. The columns are the refined splines' basis functions around the new knots;
+    projected on what the current spline already represents (``J (J^T J)^-1 J^T``), they
+    leave ``dof`` new directions (one per inserted knot), and ``s = g^T G^+ g`` (``g`` their
+    products with the residuals, ``G`` their projected Gram matrix on those directions) is
+    chi-square(``dof``) when the current knots represent the trajectory.
+    """
+    from scipy.interpolate import BSpline
+
+    parts: list[tuple[int, FloatArray, int, int, int, int]] = []
+    lo_t, hi_t = np.inf, -np.inf
+    for ax, new in zip(axes, inserts, strict=True):
+        if len(new) == 0:
+            continue
+        p = ax.degree
+        refined = np.sort(np.concatenate([ax.knots, np.asarray(new, dtype=float)]))
+        first = int(np.searchsorted(refined, float(np.min(new))))
+        last = int(np.searchsorted(refined, float(np.max(new)), side='right'))
+        j0, j1 = max(first - p - 1, 0), min(last + 1, refined.size - p - 1)
+        parts.append((len(parts), refined, j0, j1, p, len(new)))
+        lo_t = min(lo_t, float(refined[j0]))
+        hi_t = max(hi_t, float(refined[min(j1 + p, refined.size - 1)]))
+    dof = sum(part[5] for part in parts)
+    i0, i1 = np.searchsorted(ts, [lo_t, hi_t])
+    if dof == 0 or i1 - i0 < 2 * dof:
+        return None
+    tt = ts[i0:i1]
+    cols = []
+    axis_of = [a for a, new in enumerate(inserts) if len(new)]
+    for k, refined, j0, j1, p, _ in parts:
+        a = axis_of[k]
+        for j in range(j0, j1):
+            b = BSpline.basis_element(refined[j : j + p + 2], extrapolate=False)
+            val, rate = np.nan_to_num(b(tt)), np.nan_to_num(b(tt, nu=1))
+            cols.append(val * up[i0:i1, a] + rate * uv[i0:i1, a])
+    c_mat = np.column_stack(cols)
+    rows = ridx[i0:i1]
+    g = c_mat.T @ r[rows]
+    jc = np.asarray(jac[rows].T @ c_mat)
+    gram = c_mat.T @ c_mat - jc.T @ (cov @ jc)
+    w, v = np.linalg.eigh(0.5 * (gram + gram.T))
+    keep = np.argsort(w)[::-1][:dof]
+    keep = keep[w[keep] > 1e-9 * max(float(w.max()), 1e-300)]
+    if keep.size == 0:
+        return None
+    z = v[:, keep].T @ g
+    return float(np.sum(z * z / w[keep])), int(keep.size)
+
+
 def event_scores(
     axes: Sequence[SplineAxis],
     ts: FloatArray,
@@ -97,57 +163,25 @@ def event_scores(
     cov: FloatArray,
     taus: FloatArray,
 ) -> list[tuple[float, float, int]]:
-    """Score statistic of an *event* at each of ``taus``: a knot of multiplicity
-    ``degree - 1`` inserted at ``tau`` on all three axes at once (the acceleration may jump
-    there: an engine cut-off or ignition, the start or end of a turn).
-
-    ``up``/``uv`` (n, 3) are the whitened derivatives of the rows by each axis' value and
-    rate (in the spline frame), ``ts`` their sorted times. The columns are the refined
-    splines' basis functions around ``tau``; projected on what the current spline already
-    represents (``J (J^T J)^-1 J^T``), they leave ``dof = 3 (degree - 1)`` new directions,
-    and ``s = g^T G^+ g`` (``g`` their products with the residuals, ``G`` their projected
-    Gram matrix on those directions) is chi-square(``dof``) under the current knots.
-    Returns ``(tau, s, dof)`` for each tau with enough rows.
-    """
-    from scipy.interpolate import BSpline
-
+    """:func:`insertion_score` of an *event* at each of ``taus``: a knot of multiplicity
+    ``degree - 1`` at ``tau`` on all three axes at once (the acceleration may jump there:
+    an engine cut-off or ignition, the start or end of a turn); ``dof = 3 (degree - 1)``.
+    Returns ``(tau, s, dof)`` for each tau with enough rows."""
     out = []
     for tau in taus:
-        cols, lo_t, hi_t = [], np.inf, -np.inf
-        parts = []
-        for ax in axes:
-            p = ax.degree
-            m = p - 1
-            idx = int(np.searchsorted(ax.knots, tau))
-            refined = np.insert(ax.knots, idx, np.full(m, tau))
-            j0 = max(idx - p - 1, 0)
-            j1 = min(idx + m + 1, refined.size - p - 1)
-            parts.append((refined, j0, j1, p))
-            lo_t = min(lo_t, float(refined[j0]))
-            hi_t = max(hi_t, float(refined[min(j1 + p, refined.size - 1)]))
-        i0, i1 = np.searchsorted(ts, [lo_t, hi_t])
-        dof = sum(part[3] - 1 for part in parts)
-        if i1 - i0 < 2 * dof:
-            continue
-        tt = ts[i0:i1]
-        for a, (refined, j0, j1, p) in enumerate(parts):
-            for j in range(j0, j1):
-                b = BSpline.basis_element(refined[j : j + p + 2], extrapolate=False)
-                val, rate = np.nan_to_num(b(tt)), np.nan_to_num(b(tt, nu=1))
-                cols.append(val * up[i0:i1, a] + rate * uv[i0:i1, a])
-        c_mat = np.column_stack(cols)
-        rows = ridx[i0:i1]
-        g = c_mat.T @ r[rows]
-        jc = np.asarray(jac[rows].T @ c_mat)
-        gram = c_mat.T @ c_mat - jc.T @ (cov @ jc)
-        w, v = np.linalg.eigh(0.5 * (gram + gram.T))
-        keep = np.argsort(w)[::-1][:dof]
-        keep = keep[w[keep] > 1e-9 * max(float(w.max()), 1e-300)]
-        if keep.size == 0:
-            continue
-        z = v[:, keep].T @ g
-        out.append((float(tau), float(np.sum(z * z / w[keep])), int(keep.size)))
+        inserts = [np.full(ax.degree - 1, float(tau)) for ax in axes]
+        sc = insertion_score(axes, inserts, ts, up, uv, ridx, r, jac, cov)
+        if sc is not None:
+            out.append((float(tau), sc[0], sc[1]))
     return out
+
+
+def significance(s: float, dof: int) -> float:
+    """How far a chi-square(``dof``) statistic ``s`` is in its upper tail, as a normal
+    deviate (Wilson-Hilferty): increasing with ``s``, comparable across ``dof``, and finite
+    where the tail probability itself underflows (misfits of thousands of sigma)."""
+    c = 2.0 / (9.0 * dof)
+    return float(((max(s, 0.0) / dof) ** (1.0 / 3.0) - (1.0 - c)) / np.sqrt(c))
 
 
 def _with_knots(ax: SplineAxis, new: Sequence[float]) -> SplineAxis:
@@ -182,7 +216,9 @@ def _events(
 
     tgt, tim, hp, hv = rows
     q = cfg.knots.min_spacing  # the instants tried lie on this grid (edge-stable)
-    tests: list[tuple[int, float, float, list[tuple[float, float, int]]]] = []
+    tests: list[
+        tuple[int, float, float, list[tuple[float, float, int]], tuple[float, int] | None]
+    ] = []
     n_tried = 0
     for tid, traj in prob.trajs.items():
         flagged = sorted(
@@ -197,10 +233,22 @@ def _events(
                 regions[-1][2] += 1
             else:
                 regions.append([lo, hi, 1])
-        # an event misfits the few intervals its jump reaches; a longer run of failing
-        # intervals is a spline too stiff all along (or a first fit far off), not an event
+        # An event misfits the few intervals its jump reaches; a longer run of failing
+        # intervals is a spline too stiff all along (or a first fit far off), not an event.
+        # A run at an event already there (a repeated knot, from the rough trajectory or an
+        # earlier round) is left to the midpoint knots: a second event next to it would
+        # only be a worse-conditioned stand-in for moving it (seen: the search put one
+        # between two detected staging events 1 s apart, and the fit got worse).
         p = traj.axes[0].degree
-        regions = [reg for reg in regions if reg[2] <= p + 1]
+        multiple = np.concatenate(
+            [v[c > 1] for v, c in (np.unique(ax.interior, return_counts=True) for ax in traj.axes)]
+        )
+        regions = [
+            reg
+            for reg in regions
+            if reg[2] <= p + 1
+            and not np.any((multiple >= reg[0] - 1e-9) & (multiple <= reg[1] + 1e-9))
+        ]
         sel = np.flatnonzero(tgt == tid)
         order = sel[np.argsort(tim[sel], kind='stable')]
         ts = tim[order]
@@ -221,16 +269,23 @@ def _events(
             sc = event_scores(traj.axes, ts, up, uv, order, r, jac, cov, coarse)
             if not sc:
                 continue
-            best = min(sc, key=lambda x: chi2.logsf(x[1], x[2]))[0]
+            best = max(sc, key=lambda x: significance(x[1], x[2]))[0]
             k0, k1 = np.ceil((best - step) / q), np.floor((best + step) / q)
             fine = allowed(q * np.arange(k0, k1 + 1))
             sc += event_scores(traj.axes, ts, up, uv, order, r, jac, cov, fine)
             n_tried += len(sc)
-            tests.append((tid, lo, hi, sc))
+            # the alternative: the midpoint knots this run would get, tested together
+            mine = [(a, t) for k, a, t, v in traj_c if k == tid and v > limit and lo <= t <= hi]
+            mids = [np.array([t for a_, t in mine if a_ == a]) for a in range(3)]
+            alt = insertion_score(traj.axes, mids, ts, up, uv, order, r, jac, cov)
+            tests.append((tid, lo, hi, sc, alt))
     found: dict[int, list[tuple[float, float, float]]] = {}
-    for tid, lo, hi, sc in tests:
-        tau, s, dof = min(sc, key=lambda x: chi2.logsf(x[1], x[2]))
-        if chi2.sf(s, dof) < cfg.refine_alpha / n_tried:
+    for tid, lo, hi, sc, alt in tests:
+        tau, s, dof = max(sc, key=lambda x: significance(x[1], x[2]))
+        # significant, and a better explanation than the midpoint knots (a smaller p-value:
+        # more misfit explained per degree of freedom)
+        better = alt is None or significance(s, dof) > significance(*alt)
+        if s > chi2.isf(cfg.refine_alpha / n_tried, dof) and better:
             found.setdefault(tid, []).append((tau, lo, hi))
     return found
 
@@ -256,12 +311,14 @@ def refine_knots(
 
     Where intervals fail that test, an *event* (the acceleration jumping: an engine
     cut-off or ignition the rough trajectory did not show, a turn starting) may explain
-    them better than midpoint knots: with ``cfg.refine_events``, each run of failing
-    intervals is searched for the instant whose event test (:func:`event_scores`) is most
-    significant; one beyond its Bonferroni quantile at ``refine_alpha`` (over every instant
-    tried) is inserted instead of that run's midpoint knots. Not inside ``avoid`` (per
-    target: its incomplete segments, where the few measurements cannot pin an event and
-    its freedom only lets the fit wander).
+    them better than midpoint knots: with ``cfg.refine_events``, each short run of
+    failing intervals (at most ``degree + 1``, with no repeated knot in it) is searched for
+    the instant whose event test (:func:`event_scores`) is most significant. It replaces
+    the run's midpoint knots when it is beyond its Bonferroni quantile at ``refine_alpha``
+    (over every instant tried) and more significant than those midpoint knots tested
+    together (:func:`insertion_score`). Not inside ``avoid`` (per target: its incomplete
+    segments, where the few measurements cannot pin an event and its freedom only lets
+    the fit wander).
 
     Returns the refined trajectory axes and telemetry error axes, per target (only those
     that changed).
