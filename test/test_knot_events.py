@@ -10,6 +10,7 @@ from scipy.stats import chi2
 
 from orbit_tracking.core.estimation.bspline import SplineAxis
 from orbit_tracking.core.estimation.knot_refinement import (
+    ScoreRows,
     event_scores,
     insertion_score,
     significance,
@@ -40,7 +41,7 @@ def _fit(truth: np.ndarray, rng: np.random.Generator):
     for a in range(3):
         up[a * n : (a + 1) * n, a] = 1.0 / SIGMA
     order = np.argsort(ts, kind='stable')
-    return axis, ts[order], up[order], np.zeros_like(up), order, r, jac, cov
+    return axis, ScoreRows(ts[order], up[order], np.zeros_like(up), order, r, jac, cov)
 
 
 def _ramp(t: np.ndarray, jump: np.ndarray, t_event: float) -> np.ndarray:
@@ -52,11 +53,9 @@ def _ramp(t: np.ndarray, jump: np.ndarray, t_event: float) -> np.ndarray:
 def test_an_acceleration_jump_is_found_at_its_instant() -> None:
     rng = np.random.default_rng(1)
     t_event = 9.3  # between knots (8, 10)
-    axis, ts, up, uv, order, r, jac, cov = _fit(
-        lambda t: _ramp(t, np.array([-20.0, 5.0, 0.0]), t_event), rng
-    )
+    axis, data = _fit(lambda t: _ramp(t, np.array([-20.0, 5.0, 0.0]), t_event), rng)
     taus = np.arange(8.05, 10.0, 0.05)
-    scores = event_scores([axis] * 3, ts, up, uv, order, r, jac, cov, taus)
+    scores = event_scores([axis] * 3, data, taus)
     assert len(scores) == taus.size
     assert {dof for _, _, dof in scores} == {9}  # 3 axes x (degree - 1)
     best_tau, best_s, dof = max(scores, key=lambda x: x[1])
@@ -68,8 +67,8 @@ def test_without_a_jump_the_statistic_follows_its_law() -> None:
     rng = np.random.default_rng(2)
     values = []
     for _ in range(40):
-        axis, ts, up, uv, order, r, jac, cov = _fit(lambda t: _ramp(t, np.zeros(3), 0.0), rng)
-        (s,) = event_scores([axis] * 3, ts, up, uv, order, r, jac, cov, np.array([9.3]))
+        axis, data = _fit(lambda t: _ramp(t, np.zeros(3), 0.0), rng)
+        (s,) = event_scores([axis] * 3, data, np.array([9.3]))
         values.append(s[1])
     # chi-square(9): mean 9, sd 4.2; the mean of 40 within 4 of its standard errors
     assert abs(np.mean(values) - 9.0) < 4.0 * np.sqrt(18.0 / 40.0)
@@ -79,13 +78,11 @@ def test_without_a_jump_the_statistic_follows_its_law() -> None:
 def test_an_acceleration_jump_is_explained_better_by_an_event_than_by_midpoint_knots() -> None:
     """The rule that lets an event replace midpoint knots: a smaller p-value."""
     rng = np.random.default_rng(3)
-    axis, ts, up, uv, order, r, jac, cov = _fit(
-        lambda t: _ramp(t, np.array([-20.0, 5.0, 0.0]), 9.3), rng
-    )
+    axis, data = _fit(lambda t: _ramp(t, np.array([-20.0, 5.0, 0.0]), 9.3), rng)
     tau = np.array([9.3])
-    ((_, s_ev, dof_ev),) = event_scores([axis] * 3, ts, up, uv, order, r, jac, cov, tau)
+    ((_, s_ev, dof_ev),) = event_scores([axis] * 3, data, tau)
     mids = [np.array([9.0]), np.array([9.0]), np.array([], dtype=float)]
-    alt = insertion_score([axis] * 3, mids, ts, up, uv, order, r, jac, cov)
+    alt = insertion_score([axis] * 3, mids, data)
     assert alt is not None and alt[1] == 2
     assert significance(s_ev, dof_ev) > significance(*alt)
 

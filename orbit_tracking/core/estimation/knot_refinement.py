@@ -8,6 +8,7 @@ from __future__ import annotations
 import time as _time
 from collections.abc import Mapping, Sequence
 from dataclasses import replace
+from typing import NamedTuple
 
 import numpy as np
 import scipy.sparse as sp
@@ -25,6 +26,7 @@ from orbit_tracking.core.estimation.knots import (
 from orbit_tracking.core.estimation.problem import Problem
 
 __all__ = [
+    'ScoreRows',
     'choose_knots_safely',
     'event_scores',
     'insertion_score',
@@ -38,24 +40,28 @@ __all__ = [
 FloatArray = NDArray[np.float64]
 
 
-def _knot_scores(
-    ax: SplineAxis,
-    ts: FloatArray,
-    up: FloatArray,
-    uv: FloatArray,
-    ridx: NDArray[np.intp],
-    r: FloatArray,
-    jac: sp.csr_matrix,
-    cov: FloatArray,
-    min_len: float,
-) -> list[tuple[float, float]]:
-    """Score statistic of a knot at the midpoint of every interval of ``ax``.
+class ScoreRows(NamedTuple):
+    """What a score test of new knots reads of a solved window: ``ts`` the sorted times of
+    the rows ``ridx`` (into ``r`` and ``jac``) a spline acts on, ``up``/``uv`` the whitened
+    derivatives of those rows by its value and rate (one column per axis, or a vector for
+    one axis), ``r`` the whitened residuals, ``jac`` the whitened Jacobian and ``cov`` the
+    parameters' covariance at the solution."""
 
-    ``ts`` are the (sorted) times of the residual rows ``ridx`` the axis acts on, and
-    ``up``/``uv`` the whitened derivatives of those rows by the axis' value and rate.
-    """
+    ts: FloatArray
+    up: FloatArray
+    uv: FloatArray
+    ridx: NDArray[np.intp]
+    r: FloatArray
+    jac: sp.csr_matrix
+    cov: FloatArray
+
+
+def _knot_scores(ax: SplineAxis, rows_: ScoreRows, min_len: float) -> list[tuple[float, float]]:
+    """Score statistic of a knot at the midpoint of every interval of ``ax`` (``rows_``
+    with ``up``/``uv`` of this axis)."""
     from scipy.interpolate import BSpline
 
+    ts, up, uv, ridx, r, jac, cov = rows_
     out = []
     brk = np.unique(ax.knots)
     p = ax.degree
@@ -89,22 +95,13 @@ def _knot_scores(
 
 
 def insertion_score(
-    axes: Sequence[SplineAxis],
-    inserts: Sequence[FloatArray],
-    ts: FloatArray,
-    up: FloatArray,
-    uv: FloatArray,
-    ridx: NDArray[np.intp],
-    r: FloatArray,
-    jac: sp.csr_matrix,
-    cov: FloatArray,
+    axes: Sequence[SplineAxis], inserts: Sequence[FloatArray], rows_: ScoreRows
 ) -> tuple[float, int] | None:
     """Score statistic ``(s, dof)`` of inserting the knots ``inserts[a]`` into ``axes[a]``
-    (all at once), or None with too few rows.
+    (all at once), or None with too few rows; ``rows_.up``/``uv`` (n, 3) by each axis (in
+    the spline frame).
 
-    ``up``/``uv`` (n, 3) are the whitened derivatives of the rows by each axis' value and
-    rate (in the spline frame), ``ts`` their sorted times, ``ridx`` their rows in ``r`` and
-    ``jac``. The columns are the refined splines' basis functions around the new knots;
+    The columns are the refined splines' basis functions around the new knots;
     projected on what the current spline already represents (``J (J^T J)^-1 J^T``), they
     leave ``dof`` new directions (one per inserted knot), and ``s = g^T G^+ g`` (``g`` their
     products with the residuals, ``G`` their projected Gram matrix on those directions) is
@@ -112,6 +109,7 @@ def insertion_score(
     """
     from scipy.interpolate import BSpline
 
+    ts, up, uv, ridx, r, jac, cov = rows_
     parts: list[tuple[int, FloatArray, int, int, int, int]] = []
     lo_t, hi_t = np.inf, -np.inf
     for ax, new in zip(axes, inserts, strict=True):
@@ -153,15 +151,7 @@ def insertion_score(
 
 
 def event_scores(
-    axes: Sequence[SplineAxis],
-    ts: FloatArray,
-    up: FloatArray,
-    uv: FloatArray,
-    ridx: NDArray[np.intp],
-    r: FloatArray,
-    jac: sp.csr_matrix,
-    cov: FloatArray,
-    taus: FloatArray,
+    axes: Sequence[SplineAxis], rows_: ScoreRows, taus: FloatArray
 ) -> list[tuple[float, float, int]]:
     """:func:`insertion_score` of an *event* at each of ``taus``: a knot of multiplicity
     ``degree - 1`` at ``tau`` on all three axes at once (the acceleration may jump there:
@@ -170,7 +160,7 @@ def event_scores(
     out = []
     for tau in taus:
         inserts = [np.full(ax.degree - 1, float(tau)) for ax in axes]
-        sc = insertion_score(axes, inserts, ts, up, uv, ridx, r, jac, cov)
+        sc = insertion_score(axes, inserts, rows_)
         if sc is not None:
             out.append((float(tau), sc[0], sc[1]))
     return out
@@ -253,6 +243,7 @@ def _events(
         order = sel[np.argsort(tim[sel], kind='stable')]
         ts = tim[order]
         up, uv = hp[order] @ traj.rotation, hv[order] @ traj.rotation
+        data = ScoreRows(ts, up, uv, order, r, jac, cov)
         knots = np.unique(np.concatenate([ax.knots for ax in traj.axes]))
         segs = list(avoid.get(tid, ()))
 
@@ -266,18 +257,18 @@ def _events(
         for lo, hi, _ in regions:
             step = max(q, q * np.ceil((hi - lo) / 16.0 / q))
             coarse = allowed(step * np.arange(np.ceil(lo / step), np.floor(hi / step) + 1))
-            sc = event_scores(traj.axes, ts, up, uv, order, r, jac, cov, coarse)
+            sc = event_scores(traj.axes, data, coarse)
             if not sc:
                 continue
             best = max(sc, key=lambda x: significance(x[1], x[2]))[0]
             k0, k1 = np.ceil((best - step) / q), np.floor((best + step) / q)
             fine = allowed(q * np.arange(k0, k1 + 1))
-            sc += event_scores(traj.axes, ts, up, uv, order, r, jac, cov, fine)
+            sc += event_scores(traj.axes, data, fine)
             n_tried += len(sc)
             # the alternative: the midpoint knots this run would get, tested together
             mine = [(a, t) for k, a, t, v in traj_c if k == tid and v > limit and lo <= t <= hi]
             mids = [np.array([t for a_, t in mine if a_ == a]) for a in range(3)]
-            alt = insertion_score(traj.axes, mids, ts, up, uv, order, r, jac, cov)
+            alt = insertion_score(traj.axes, mids, data)
             tests.append((tid, lo, hi, sc, alt))
     found: dict[int, list[tuple[float, float, float]]] = {}
     for tid, lo, hi, sc, alt in tests:
@@ -340,16 +331,16 @@ def refine_knots(
         for a, ax in enumerate(traj.axes):
             up = hp[order] @ traj.rotation[:, a]
             uv = hv[order] @ traj.rotation[:, a]
-            for tau, sc in _knot_scores(ax, ts, up, uv, order, r, jac, cov, min_len):
+            data = ScoreRows(ts, up, uv, order, r, jac, cov)
+            for tau, sc in _knot_scores(ax, data, min_len):
                 traj_c.append((tid, a, tau, sc))
         tb = next((t for t in prob.telemetry if t.target == tid), None)
         if tb is None:
             continue
         tsel = order[is_tel[order]]
         for c in range(3):
-            scores = _knot_scores(
-                tb.axis, tim[tsel], hp[tsel, c], hv[tsel, c], tsel, r, jac, cov, min_len
-            )
+            data = ScoreRows(tim[tsel], hp[tsel, c], hv[tsel, c], tsel, r, jac, cov)
+            scores = _knot_scores(tb.axis, data, min_len)
             tel_c.extend((tid, c, tau, sc) for tau, sc in scores)
     n_cand = len(traj_c) + len(tel_c)
     if n_cand == 0:
