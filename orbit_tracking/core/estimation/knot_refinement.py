@@ -107,8 +107,6 @@ def insertion_score(
     products with the residuals, ``G`` their projected Gram matrix on those directions) is
     chi-square(``dof``) when the current knots represent the trajectory.
     """
-    from scipy.interpolate import BSpline
-
     ts, up, uv, ridx, r, jac, cov = rows_
     parts: list[tuple[int, FloatArray, int, int, int, int]] = []
     lo_t, hi_t = np.inf, -np.inf
@@ -132,11 +130,11 @@ def insertion_score(
     axis_of = [a for a, new in enumerate(inserts) if len(new)]
     for k, refined, j0, j1, p, _ in parts:
         a = axis_of[k]
-        for j in range(j0, j1):
-            b = BSpline.basis_element(refined[j : j + p + 2], extrapolate=False)
-            val, rate = np.nan_to_num(b(tt)), np.nan_to_num(b(tt, nu=1))
-            cols.append(val * up[i0:i1, a] + rate * uv[i0:i1, a])
-    c_mat = np.column_stack(cols)
+        sa = SplineAxis(refined, p)
+        val = sa.design(tt)[:, j0:j1].toarray()
+        rate = sa.design(tt, 1)[:, j0:j1].toarray()
+        cols.append(val * up[i0:i1, a, None] + rate * uv[i0:i1, a, None])
+    c_mat = np.hstack(cols)
     rows = ridx[i0:i1]
     g = c_mat.T @ r[rows]
     jc = np.asarray(jac[rows].T @ c_mat)
