@@ -5,6 +5,7 @@ knots do represent the statistic behaves as its chi-square law says."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import scipy.sparse as sp
 from scipy.stats import chi2
 
@@ -96,3 +97,44 @@ def test_significance_orders_tails_like_the_chi_square_law() -> None:
     assert by_p == by_z
     assert abs(significance(chi2.isf(0.01, 9), 9) - 2.326) < 0.05
     assert 100.0 < significance(1e6, 9) < significance(2e6, 9) < np.inf
+
+
+def _staging_window(refine_events: bool):
+    """Robustness ascent draw 45 (no telemetry, so no event detection from a rough
+    trajectory), its window 35.7-65.7 s: staging events at 37.96 and 38.26 s."""
+    from orbit_tracking.core.estimation.config import EstimatorConfig
+    from orbit_tracking.core.estimation.estimator import estimate
+    from orbit_tracking.tools.bench.robustness_draw import _case
+
+    case = _case('ascent', 45)
+    est = estimate(case.obs_est, 35.7, 65.7, EstimatorConfig(refine_events=refine_events))
+    sel = (case.truth_t >= 36.0) & (case.truth_t <= 40.0)
+    x, cov = est.targets[0].states(case.truth_t[sel])
+    e = x[:, :3] - case.truth_x[sel, :3]
+    maha = np.sqrt(np.einsum('ki,kij,kj->k', e, np.linalg.inv(cov[:, :3, :3]), e))
+    rms = float(np.sqrt(np.mean(np.sum(e**2, axis=1))))
+    events = [
+        v[c >= 3]
+        for v, c in (
+            np.unique(ax.interior, return_counts=True) for ax in est.targets[0].trajectory.axes
+        )
+    ]
+    return case, est, maha, rms, events
+
+
+@pytest.mark.timeout(120)
+def test_events_from_the_measurements_make_a_staging_honest() -> None:
+    """Without the event test the spline's single knots cannot follow two acceleration
+    jumps 0.3 s apart: states several sigma off while the window claims success. With it,
+    events go in near the true instants on every axis and the states are honest."""
+    case, est, maha, rms, events = _staging_window(True)
+    assert est.success, est.message
+    true = np.asarray(case.draw.events)
+    for found in events:
+        assert found.size >= 1
+        assert np.min(np.abs(found[:, None] - true[None, :])) < 0.6, (found, true)
+    assert maha.max() < 5.0
+    _, est_off, maha_off, rms_off, events_off = _staging_window(False)
+    assert all(f.size == 0 for f in events_off)
+    assert maha_off.max() > 5.0  # the failure the test removes
+    assert rms < 0.5 * rms_off

@@ -268,6 +268,16 @@ class EstimatorNode(StationInputs):
                 'fires on errors that are not a skew, see docs/ESTIMATOR.md) or on.',
                 read_only=True,
             ),
+            refine_events=declare(
+                self,
+                'refine_events',
+                False,
+                'Let the knot test also insert events (the acceleration may jump there: a '
+                'staging the telemetry did not show, a turn starting) where the measurements '
+                'ask for one; off by default: it costs time and one reference scenario '
+                '(seed003_q2) loses accuracy, see docs/ESTIMATOR.md.',
+                read_only=True,
+            ),
             estimate_telemetry_error=declare(
                 self,
                 'estimate_telemetry_error',

@@ -156,7 +156,8 @@ class EstimatorConfig:
         Let that test also insert events (a knot of multiplicity ``degree - 1`` on every
         axis: the acceleration may jump there) where the measurements ask for one, outside
         the incomplete segments (:func:`~orbit_tracking.core.estimation.knot_refinement.
-        refine_knots`).
+        refine_knots`). Off by default: on the benchmarks it removed over-confident states
+        but cost time and accuracy on seed003_q2 (docs/ESTIMATOR.md).
     prune_z : float
         After the first solve, a single interior knot whose derivative jump is below this
         many of its standard deviations is dropped (the measurements do not support it);
@@ -226,7 +227,7 @@ class EstimatorConfig:
     refine_rounds: int = 4
     prune_z: float = 0.0
     refine_alpha: float = 0.01
-    refine_events: bool = True
+    refine_events: bool = False
     biases: tuple[BiasParameter, ...] = ()
     bias_observability: float = 0.9
     thrust_along_velocity: float = 0.0

@@ -270,7 +270,13 @@ def _events(
             tests.append((tid, lo, hi, sc, alt))
     found: dict[int, list[tuple[float, float, float]]] = {}
     for tid, lo, hi, sc, alt in tests:
-        tau, s, dof = max(sc, key=lambda x: significance(x[1], x[2]))
+        # the fine grid may reach past the spline's ends (a run at the window's edge);
+        # an instant there is tried, never inserted
+        ax0 = prob.trajs[tid].axes[0]
+        inside = [x for x in sc if ax0.t0 + q <= x[0] <= ax0.t1 - q]
+        if not inside:
+            continue
+        tau, s, dof = max(inside, key=lambda x: significance(x[1], x[2]))
         # significant, and a better explanation than the midpoint knots (a smaller p-value:
         # more misfit explained per degree of freedom)
         better = alt is None or significance(s, dof) > significance(*alt)
