@@ -138,3 +138,20 @@ def test_events_from_the_measurements_make_a_staging_honest() -> None:
     assert all(f.size == 0 for f in events_off)
     assert maha_off.max() > 5.0  # the failure the test removes
     assert rms < 0.5 * rms_off
+
+
+@pytest.mark.timeout(120)
+def test_the_search_at_a_window_edge_stays_inside_the_spline() -> None:
+    """Robustness ascent draw 56, stations only, its last window: a failing run at the
+    window's end sent the fine grid past the spline's end, and the refined knot vector
+    there was not a spline's (a ValueError that failed the window)."""
+    from orbit_tracking.core.estimation.config import EstimatorConfig
+    from orbit_tracking.core.estimation.estimator import estimate
+    from orbit_tracking.tools.bench.robustness_draw import _case
+
+    case = _case('ascent', 56)
+    cfg = EstimatorConfig(refine_events=True, use_telemetry=False)
+    est = estimate(case.obs_est, 52.2013, 98.7944, cfg)
+    assert est.success, est.message
+    for ax in est.targets[0].trajectory.axes:
+        assert np.all((ax.interior > ax.t0) & (ax.interior < ax.t1))

@@ -247,7 +247,8 @@ def _events(
 
         def allowed(g: FloatArray, knots: FloatArray = knots, segs: list = segs) -> FloatArray:
             near = np.min(np.abs(g[:, None] - knots[None, :]), axis=1)
-            ok = near >= q
+            # inside the spline (the fine grid can reach past a window edge), off its knots
+            ok = (near >= q) & (g > knots[0]) & (g < knots[-1])
             for a0, a1 in segs:
                 ok &= (g < a0) | (g > a1)
             return g[ok]
@@ -270,13 +271,7 @@ def _events(
             tests.append((tid, lo, hi, sc, alt))
     found: dict[int, list[tuple[float, float, float]]] = {}
     for tid, lo, hi, sc, alt in tests:
-        # the fine grid may reach past the spline's ends (a run at the window's edge);
-        # an instant there is tried, never inserted
-        ax0 = prob.trajs[tid].axes[0]
-        inside = [x for x in sc if ax0.t0 + q <= x[0] <= ax0.t1 - q]
-        if not inside:
-            continue
-        tau, s, dof = max(inside, key=lambda x: significance(x[1], x[2]))
+        tau, s, dof = max(sc, key=lambda x: significance(x[1], x[2]))
         # significant, and a better explanation than the midpoint knots (a smaller p-value:
         # more misfit explained per degree of freedom)
         better = alt is None or significance(s, dof) > significance(*alt)
