@@ -24,6 +24,7 @@ from orbit_tracking.core.estimation.knots import (
     choose_knots,
 )
 from orbit_tracking.core.estimation.problem import Problem
+from orbit_tracking.core.estimation.telemetry_velocity import quadratic_score
 
 __all__ = [
     'ScoreRows',
@@ -139,13 +140,7 @@ def insertion_score(
     g = c_mat.T @ r[rows]
     jc = np.asarray(jac[rows].T @ c_mat)
     gram = c_mat.T @ c_mat - jc.T @ (cov @ jc)
-    w, v = np.linalg.eigh(0.5 * (gram + gram.T))
-    keep = np.argsort(w)[::-1][:dof]
-    keep = keep[w[keep] > 1e-9 * max(float(w.max()), 1e-300)]
-    if keep.size == 0:
-        return None
-    z = v[:, keep].T @ g
-    return float(np.sum(z * z / w[keep])), int(keep.size)
+    return quadratic_score(g, gram, dof)
 
 
 def event_scores(

@@ -32,7 +32,13 @@ from orbit_tracking.core.estimation.config import EstimatorConfig
 if TYPE_CHECKING:
     from orbit_tracking.core.estimation.problem import Problem
 
-__all__ = ['ScoreTest', 'VelocityErrorTest', 'score_statistic', 'velocity_error_test']
+__all__ = [
+    'ScoreTest',
+    'VelocityErrorTest',
+    'quadratic_score',
+    'score_statistic',
+    'velocity_error_test',
+]
 
 FloatArray = NDArray[np.float64]
 
@@ -114,9 +120,20 @@ def score_statistic(
     a[np.diag_indices_from(a)] *= 1.0 + 1e-10
     c = np.asarray(jo.T @ jw)
     s = jw.T @ jw - c.T @ np.linalg.lstsq(a, c, rcond=1e-12)[0]
-    g = jw.T @ r
+    return quadratic_score(jw.T @ r, s)
+
+
+def quadratic_score(
+    g: FloatArray, s: FloatArray, rank: int | None = None
+) -> tuple[float, int] | None:
+    """``g^T S^+ g`` and the rank of ``S`` (the projected Gram matrix of the new unknowns'
+    columns, ``g`` their products with the residuals): the pseudo-inverse on the
+    eigen-directions above ``1e-9`` of the largest, at most the ``rank`` largest of them;
+    None when there is none."""
     w, v = np.linalg.eigh(0.5 * (s + s.T))
     keep = w > 1e-9 * max(float(w.max()), 1e-300)
+    if rank is not None and int(keep.sum()) > rank:
+        keep &= np.arange(w.size) >= w.size - rank  # eigh sorts ascending
     if not keep.any():
         return None
     proj = v[:, keep].T @ g
