@@ -33,10 +33,10 @@ GAP_LIMIT: dict[str, float] = {}
 
 
 KNOWN_FAILING = {
-    'time_skew': 'a position time-tag skew makes a telemetry error v * skew whose slope jumps '
-    'at every staging event, which the cubic error spline cannot follow: 28 states of the '
-    'incomplete segment are more than 5 sigma off (issue 14, open; the time-tag delays, '
-    'telemetry_delays, are off by default)',
+    'time_skew': 'a time-tag skew of the telemetry: the delays are estimated (telemetry_delays '
+    'auto, the default; position delay 86.7 ms against the true 87.2) but the velocity delay '
+    'comes out at 10.6 +- 1.1 ms against the true 35.1 and a velocity error of its own takes '
+    'the rest; 43 states of the incomplete segment are more than 5 sigma off (issue 14, open)',
 }
 
 
@@ -101,10 +101,13 @@ def test_the_velocity_error_options_are_checked():
 
 @pytest.mark.timeout(120)
 def test_the_size_of_the_telemetry_error_spline_comes_from_the_data():
-    """White telemetry has no slow error: its error spline shrinks far below the declared
-    sigma; a drift of tens of metres keeps it at about its size. Held at the declared sigma
-    (``estimate_telemetry_error: false``) it stays there, and the message says which."""
-    sizes = {}
+    """White telemetry has no slow error: its error spline's level and steps shrink far
+    below the declared sigma. A drift of tens of metres that changes slowly keeps its level
+    at about the declared sigma, while its steps (one coefficient to the next, 15 s) stay
+    a small part of it, so the telemetry still fixes the shape of the trajectory. Held at
+    the declared sigma (``estimate_telemetry_error: false``) both stay there, and the
+    message says which."""
+    levels, steps = {}, {}
     for model in ('white', 'drift'):
         case = _case('ascent', SEED, SPAN, model)
         declared = float(np.median(case.obs_est.telemetry[0].position_sigma))
@@ -112,13 +115,18 @@ def test_the_size_of_the_telemetry_error_spline_comes_from_the_data():
         assert est.success, est.message
         sigma = est.targets[0].telemetry_error_sigma
         assert sigma is not None
-        assert f'error spline sigma {sigma:.3g} m (declared {declared:.3g} m)' in est.message
-        sizes[model] = sigma / declared
+        level, step = sigma
+        assert (
+            f'error spline sigma {level:.3g} m, steps {step:.3g} m (declared {declared:.3g} m)'
+            in est.message
+        )
+        levels[model], steps[model] = level / declared, step / declared
         held = estimate(case.obs_est, 0.0, SPAN, EstimatorConfig(estimate_telemetry_error=False))
-        assert held.targets[0].telemetry_error_sigma == pytest.approx(declared)
+        assert held.targets[0].telemetry_error_sigma == pytest.approx((declared, declared))
         assert 'error spline sigma' not in held.message
-    assert sizes['white'] < 0.1, sizes
-    assert 0.5 < sizes['drift'] < 2.0, sizes
+    assert levels['white'] < 0.1 and steps['white'] < 0.1, (levels, steps)
+    assert 0.5 < levels['drift'] < 2.0, levels
+    assert steps['drift'] < 0.2 * levels['drift'], (levels, steps)
 
 
 @pytest.mark.timeout(120)

@@ -1,4 +1,4 @@
-"""Issue 14: time-tag delays of the telemetry (``telemetry_delays: auto``; off by default).
+"""Issue 14: time-tag delays of the telemetry (``telemetry_delays: auto``, the default).
 
 A manoeuvring aircraft (robustness family, seed 4: two ships with a radar each, GPS at
 2 Hz; its first 60 s window, with a turn) whose GPS positions are tagged ``d_p`` late and

@@ -262,10 +262,10 @@ class EstimatorNode(StationInputs):
             telemetry_delays=declare(
                 self,
                 'telemetry_delays',
-                'off',
-                'Time-tag delays of the telemetry position and velocity: off (default), auto '
-                '(estimated in a window whose residuals ask for them, by a score test; it also '
-                'fires on errors that are not a skew, see docs/ESTIMATOR.md) or on.',
+                'auto',
+                'Time-tag delays of the telemetry position and velocity: auto (default: '
+                'estimated in a window whose residuals ask for them, by a score test), off '
+                'or on; see docs/ESTIMATOR.md.',
                 read_only=True,
             ),
             refine_events=declare(
@@ -282,9 +282,9 @@ class EstimatorNode(StationInputs):
                 self,
                 'estimate_telemetry_error',
                 True,
-                'Estimate the size of the telemetry error spline from the data (white '
-                'telemetry then counts in full); false holds it at the declared position '
-                'sigma.',
+                'Estimate the two prior sizes of the telemetry error spline (its level and '
+                'its steps between coefficients) from the data (white telemetry then counts '
+                'in full); false holds both at the declared position sigma.',
                 read_only=True,
             ),
             jerk_prior=declare(

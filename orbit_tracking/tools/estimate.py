@@ -166,9 +166,10 @@ def _window_summary(e: Estimate) -> dict[str, object]:
             for tid, sol in sorted(e.targets.items())
             if sol.telemetry_delays is not None
         },
-        # the size of the telemetry error spline [m] (estimated from the data by default)
+        # the prior sigmas of the telemetry error spline [m], its level and its steps
+        # (estimated from the data by default)
         'telemetry_error_sigma_m': {
-            int(tid): float(sol.telemetry_error_sigma)
+            int(tid): [float(x) for x in sol.telemetry_error_sigma]
             for tid, sol in sorted(e.targets.items())
             if sol.telemetry_error_sigma is not None
         },

@@ -114,10 +114,8 @@ class EstimatorConfig:
     telemetry_delays : str
         ``auto``: a window estimates a time-tag delay of the telemetry position and one of
         its velocity (``p(t - d_p)``, ``v(t - d_v)``) when a score test on its residuals
-        asks for them (:mod:`~orbit_tracking.core.estimation.telemetry_delays`); ``off``
-        (default): never; ``on``: always. Off by default: on the robustness benchmark the
-        test also fires on telemetry errors that are not a skew (random walk, separate
-        velocity source, bias and drift, jumps); see docs/ESTIMATOR.md.
+        asks for them (:mod:`~orbit_tracking.core.estimation.telemetry_delays`; the
+        default); ``off``: never; ``on``: always. See docs/ESTIMATOR.md.
     nonlinear_sigma : float
         Where three sigma of a state along its longest axis change a nearby station value
         to second order by more than this many of its sigmas (the row's, or the fitted
@@ -132,9 +130,10 @@ class EstimatorConfig:
     estimate_telemetry_noise : bool
         Re-estimate the telemetry white-noise levels from the residuals.
     estimate_telemetry_error : bool
-        Re-estimate the size (prior sigma) of the telemetry error spline from the data
-        (an EM step of its variance component per solve round) instead of holding it at
-        the declared position sigma.
+        Re-estimate the two prior sigmas of the telemetry error spline (its level and its
+        steps between consecutive coefficients) from the data (an evidence update of each
+        variance component per solve round) instead of holding them at the declared
+        position sigma.
     max_chi2_dof : float
         Largest chi-square per degree of freedom of a window that is a success (with few
         degrees of freedom ``1 + 5 sqrt(2 / dof)`` if larger; see
@@ -215,7 +214,7 @@ class EstimatorConfig:
     telemetry_velocity_error: str = 'auto'
     telemetry_velocity_error_spacing: float = 20.0
     telemetry_velocity_alpha: float = 1e-3
-    telemetry_delays: str = 'off'
+    telemetry_delays: str = 'auto'
     nonlinear_sigma: float = 1.0
     edge_gap: float = 0.5
     estimate_telemetry_noise: bool = True

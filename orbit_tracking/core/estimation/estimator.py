@@ -408,7 +408,7 @@ def _estimate_once(
                 prob, tid, s.trajectory, out.beta[o : o + nt], cov[o : o + nt, o : o + nt], cfg
             ),
             '' if tel is None else ('separate' if tel.w_axis is not None else 'derivative'),
-            None if tel is None else tel.prior_sigma[0],
+            None if tel is None else tel.prior_sigma,
             prob.jerk_q.get(tid),
             _delays(tel, out.beta, cov),
         )
@@ -451,8 +451,8 @@ def _estimate_once(
     )
     if cfg.estimate_telemetry_error:
         msg += ''.join(
-            f'; telemetry {tb.target} error spline sigma {tb.prior_sigma[0]:.3g} m '
-            f'(declared {tb.declared_sigma:.3g} m)'
+            f'; telemetry {tb.target} error spline sigma {tb.prior_sigma[0]:.3g} m, '
+            f'steps {tb.prior_sigma[1]:.3g} m (declared {tb.declared_sigma:.3g} m)'
             for tb in prob.telemetry
         )
     if factors:

@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 
 from orbit_tracking.core.estimation.config import EstimatorConfig
 from orbit_tracking.core.estimation.problem import Problem
+from orbit_tracking.core.estimation.telemetry_block import TelemetryBlock, error_step_matrix
 
 __all__ = ['ERROR_SIGMA_RANGE', 'JERK_Q_FLOOR', 'reestimate_priors']
 
@@ -66,16 +67,45 @@ def reestimate_priors(prob: Problem, beta: FloatArray, cfg: EstimatorConfig) -> 
         unit = np.zeros((prob.n, sl.stop - sl.start))
         unit[sl] = np.eye(sl.stop - sl.start)
         c_ee = (sla.cho_solve(fac, unit) / d[:, None])[sl] / d[None, sl]
-        e = beta[sl]
-        old = tb.prior_sigma[0]
-        gamma = e.size - float(np.trace(c_ee)) / old**2
-        new = math.sqrt(float(e @ e) / gamma) if gamma > 0.5 else 0.0
-        lo, hi = (k * tb.declared_sigma for k in ERROR_SIGMA_RANGE)
-        new = min(max(new, old / 10.0, lo), 10.0 * old, hi)
-        changed |= abs(new - old) > 0.05 * old
-        tb.prior_sigma = (new, tb.prior_sigma[1])
+        changed |= _error_sizes(tb, beta[sl], c_ee)
     changed |= _jerk_densities(prob, beta, normal, np.asarray(jac.T @ r))
     return changed
+
+
+def _error_sizes(tb: TelemetryBlock, e: FloatArray, c_ee: FloatArray) -> bool:
+    """New level and step sigmas of ``tb``'s error spline from its coefficients ``e`` and
+    their posterior covariance ``c_ee``; True when one moved by more than 5 %."""
+    bounds = tuple(k * tb.declared_sigma for k in ERROR_SIGMA_RANGE)
+    new = (
+        _component(tb.prior_sigma[0], np.eye(3, e.size), e, c_ee, bounds),
+        _component(
+            tb.prior_sigma[1], error_step_matrix(tb.axis.n_coef).toarray(), e, c_ee, bounds
+        ),
+    )
+    changed = any(abs(a - b) > 0.05 * b for a, b in zip(new, tb.prior_sigma, strict=True))
+    tb.prior_sigma = new
+    return changed
+
+
+def _component(
+    old: float, m: FloatArray, x: FloatArray, cov: FloatArray, bounds: tuple[float, ...]
+) -> float:
+    """The new sigma of the prior ``|m x|^2 / sigma^2`` (``cov``: the posterior covariance
+    of ``x``), moved by at most a factor of 10 and kept within ``bounds``."""
+    y = m @ x
+    new = _variance_update(old, float(y @ y), y.size, float(np.sum((m @ cov) * m)))
+    return min(max(new, old / 10.0, bounds[0]), 10.0 * old, bounds[1])
+
+
+def _variance_update(old: float, square: float, rank: int, trace: float) -> float:
+    """The evidence update of one variance component's sigma: MacKay's
+    ``|M x|^2 / gamma`` where the data determine enough of it (``gamma > 0.5``), else the
+    EM update ``(|M x|^2 + tr(M C M^T)) / rank``, which keeps a size the data cannot tell
+    (MacKay's would take it to zero there)."""
+    gamma = rank - trace / old**2
+    if gamma > 0.5:
+        return math.sqrt(square / gamma)
+    return math.sqrt((square + trace) / rank)
 
 
 def _jerk_densities(prob: Problem, beta: FloatArray, normal: FloatArray, grad: FloatArray) -> bool:

@@ -25,7 +25,7 @@ from orbit_tracking.core.estimation.motion_rows import jerk_rows, thrust_normal
 from orbit_tracking.core.estimation.telemetry_block import (
     VELOCITY_ERROR_PRIOR,
     TelemetryBlock,
-    error_prior_sigma,
+    error_prior_matrix,
     shift_columns,
     telemetry_block,
     velocity_error_axis,
@@ -348,12 +348,12 @@ class Problem:
             use_p, use_v = self.telemetry_use(tb)
             rp = dp[use_p].ravel() / sp_
             rv = dv[use_v].ravel() / sv_
-            prior_sig = error_prior_sigma(tb)
-            prior = ecoef / prior_sig
+            prior_m = error_prior_matrix(tb)
+            prior = prior_m @ ecoef
             res.extend([rp, rv, -prior])
             tags.append(('telemetry_position', tb.target, use_p))
             tags.append(('telemetry_velocity', tb.target, use_v))
-            tags.append(('telemetry_prior', tb.target, np.ones(ecoef.size, dtype=bool)))
+            tags.append(('telemetry_prior', tb.target, np.ones(prior.size, dtype=bool)))
             if jacobian:
                 rows_p = np.flatnonzero(np.repeat(use_p, 3))
                 rows_v = np.flatnonzero(np.repeat(use_v, 3))
@@ -366,9 +366,8 @@ class Problem:
                     self.n,
                 )
                 jac.extend([jp / sp_, jv / sv_])
-                # the prior row is 0 - e / sigma: its model e / sigma has derivative +1 / sigma
-                pj = sp.diags(1.0 / prior_sig, format='csr')
-                jac.append(shift_columns(pj, tb.offset, self.n))
+                # the prior rows are 0 - M e: their model M e has derivative M
+                jac.append(shift_columns(prior_m, tb.offset, self.n))
                 eye = np.eye(3)
                 for valid, sig, vel in ((use_p, sp_, False), (use_v, sv_, True)):
                     nv = int(valid.sum())
@@ -378,8 +377,8 @@ class Problem:
                     rows.append(
                         (tb.target, tt, zero if vel else unit, unit if vel else zero, True)
                     )
-                z = np.zeros((ecoef.size, 3))
-                rows.append((-1, np.zeros(ecoef.size), z, z, False))
+                z = np.zeros((prior.size, 3))
+                rows.append((-1, np.zeros(prior.size), z, z, False))
         for fb in self.fixes:
             use = fb.valid & ~self.gated.get(('fix', fb.target), np.zeros_like(fb.valid))
             r = self._fix_residuals(fb, beta)[use].ravel()

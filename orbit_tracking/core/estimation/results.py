@@ -35,8 +35,9 @@ class TargetSolution:
     measurements are not linear over one sigma there:
     :func:`~orbit_tracking.core.estimation.linearity.nonlinear_spans`); :meth:`states`
     gives the largest sigma in every direction there. ``telemetry_error_sigma`` is the
-    prior sigma [m] the telemetry error spline ended with (the declared position sigma,
-    or its size estimated from the data; None without telemetry fused).
+    pair of prior sigmas [m] the telemetry error spline ended with, its level and its steps
+    from one coefficient to the next (the declared position sigma, or estimated from the
+    data; None without telemetry fused).
     ``jerk_density`` is the white-jerk prior's density [m^2/s^5] estimated for this
     trajectory (None without the prior). ``telemetry_delays`` are the telemetry's
     estimated time-tag delays of position and velocity and their sigmas, ``(d_p, sigma,
@@ -53,7 +54,7 @@ class TargetSolution:
     telemetry_noise: tuple[float, float] | None = None
     isotropic_spans: tuple[Segment, ...] = ()
     telemetry_velocity: str = ''
-    telemetry_error_sigma: float | None = None
+    telemetry_error_sigma: tuple[float, float] | None = None
     jerk_density: float | None = None
     telemetry_delays: tuple[float, float, float, float] | None = None
 

@@ -16,7 +16,7 @@ with ``p, v, a`` the trajectory and its derivatives and
   asks for them, :mod:`~orbit_tracking.core.estimation.telemetry_delays`): a position
   tagged ``t`` that was the vehicle's at ``t - d_p`` (to second order in ``d_p``).
 
-Each error coefficient has a zero-mean prior (:func:`error_prior_sigma`). The coefficients
+The error coefficients have a zero-mean prior (:func:`error_prior_matrix`). The coefficients
 of one block follow each other in the problem's unknowns: ``e`` (3 per coefficient of its
 axis), ``w`` (likewise), then ``d_p, d_v``.
 """
@@ -39,7 +39,8 @@ __all__ = [
     'DELAY_PRIOR_S',
     'VELOCITY_ERROR_PRIOR',
     'TelemetryBlock',
-    'error_prior_sigma',
+    'error_prior_matrix',
+    'error_step_matrix',
     'shift_columns',
     'telemetry_block',
     'velocity_error_axis',
@@ -70,7 +71,7 @@ class TelemetryBlock:
     edw: sp.csr_matrix
     axis: SplineAxis
     offset: int  # first error coefficient
-    prior_sigma: tuple[float, float]
+    prior_sigma: tuple[float, float]  # e's level and step sigmas [m] (error_prior_matrix)
     noise: list[float]  # [position, velocity] white sigma
     valid_p: NDArray[np.bool_]
     valid_v: NDArray[np.bool_]
@@ -179,16 +180,33 @@ def velocity_error_axis(
     return SplineAxis.from_interior(knots, t0, t1, 1)
 
 
-def error_prior_sigma(tb: TelemetryBlock) -> FloatArray:
-    """Prior sigma of every telemetry error coefficient: the block's prior sigma for ``e``,
-    :data:`VELOCITY_ERROR_PRIOR` for a separate velocity error, :data:`DELAY_PRIOR_S` for
-    the delays."""
-    n_e = 3 * tb.axis.n_coef
-    out = np.full(tb.n_error, tb.prior_sigma[0])
-    out[n_e:] = VELOCITY_ERROR_PRIOR
+def error_prior_matrix(tb: TelemetryBlock) -> sp.csr_matrix:
+    """The square root ``M`` of the prior information of the block's error coefficients
+    (the prior rows are ``0 - M x``): for ``e``, per axis, its first coefficient over
+    ``prior_sigma[0]`` (the level) and each later one minus its predecessor over
+    ``prior_sigma[1]`` (the steps: a random walk of the coefficients, so that a large but
+    slow error, a bias or a drift, does not also allow a fast one); then a separate
+    velocity error's coefficients over :data:`VELOCITY_ERROR_PRIOR` and the delays over
+    :data:`DELAY_PRIOR_S`."""
+    n_c = tb.axis.n_coef
+    level, step = tb.prior_sigma
+    inv = np.full(3 * n_c - 3, 1.0 / step)
+    diag = np.empty(tb.n_error)
+    diag[:3] = 1.0 / level
+    diag[3 : 3 * n_c] = inv
+    diag[3 * n_c :] = 1.0 / VELOCITY_ERROR_PRIOR
     if tb.delays:
-        out[-2:] = DELAY_PRIOR_S
-    return out
+        diag[-2:] = 1.0 / DELAY_PRIOR_S
+    sub = np.zeros(tb.n_error - 3)
+    sub[: 3 * n_c - 3] = -inv
+    return sp.diags([diag, sub], [0, -3], shape=(tb.n_error, tb.n_error), format='csr')
+
+
+def error_step_matrix(n_coef: int) -> sp.csr_matrix:
+    """Differences of consecutive coefficients of ``e`` (3 per coefficient, interleaved by
+    axis): ``(3 (n_coef - 1), 3 n_coef)``."""
+    m = 3 * (n_coef - 1)
+    return sp.diags([-np.ones(m), np.ones(m)], [0, 3], shape=(m, 3 * n_coef), format='csr')
 
 
 def telemetry_block(
@@ -219,7 +237,7 @@ def telemetry_block(
         sp.kron(e1, i3, format='csr'),
         axis,
         offset,
-        (sig_p, sig_v),
+        (sig_p, sig_p),
         [sig_p, sig_v],
         np.asarray(np.isfinite(tel.position).all(axis=1)),
         np.asarray(np.isfinite(tel.velocity).all(axis=1)),
