@@ -190,16 +190,13 @@ def error_prior_matrix(tb: TelemetryBlock) -> sp.csr_matrix:
     :data:`DELAY_PRIOR_S`."""
     n_c = tb.axis.n_coef
     level, step = tb.prior_sigma
-    inv = np.full(3 * n_c - 3, 1.0 / step)
-    diag = np.empty(tb.n_error)
-    diag[:3] = 1.0 / level
-    diag[3 : 3 * n_c] = inv
-    diag[3 * n_c :] = 1.0 / VELOCITY_ERROR_PRIOR
+    m_e = sp.vstack([sp.eye(3, 3 * n_c) / level, error_step_matrix(n_c) / step], format='csr')
+    rest = np.full(tb.n_error - 3 * n_c, 1.0 / VELOCITY_ERROR_PRIOR)
     if tb.delays:
-        diag[-2:] = 1.0 / DELAY_PRIOR_S
-    sub = np.zeros(tb.n_error - 3)
-    sub[: 3 * n_c - 3] = -inv
-    return sp.diags([diag, sub], [0, -3], shape=(tb.n_error, tb.n_error), format='csr')
+        rest[-2:] = 1.0 / DELAY_PRIOR_S
+    if not rest.size:
+        return m_e
+    return sp.block_diag([m_e, sp.diags(rest)], format='csr')
 
 
 def error_step_matrix(n_coef: int) -> sp.csr_matrix:
