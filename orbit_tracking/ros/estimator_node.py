@@ -309,6 +309,28 @@ class EstimatorNode(StationInputs):
                 min_value=0.0,
                 max_value=1e6,
             ),
+            gap_manoeuvre_density=declare(
+                self,
+                'gap_manoeuvre_density',
+                30.0,
+                'Density [m^2/s^5] of the manoeuvres an incomplete segment may hide (a staging '
+                'or a turn the few stations there cannot show): steps of the acceleration '
+                'inside every incomplete segment, a white jerk of this density, carried as '
+                'consider parameters in the published state covariance (the estimate does not '
+                'change). 0 = off; see docs/ESTIMATOR.md.',
+                read_only=True,
+                min_value=0.0,
+                max_value=1e6,
+            ),
+            gap_manoeuvre_step=declare(
+                self,
+                'gap_manoeuvre_step',
+                0.5,
+                'Spacing [s] of the instants of those acceleration steps.',
+                read_only=True,
+                min_value=0.01,
+                max_value=10.0,
+            ),
             edge_gap=declare(
                 self,
                 'edge_gap',

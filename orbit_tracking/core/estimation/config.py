@@ -188,6 +188,14 @@ class EstimatorConfig:
         telemetry outage with a turn in it) the way a Kalman smoother's motion model does.
     jerk_grid : float
         Quadrature step [s] of that integral.
+    gap_manoeuvre_density : float
+        Density q [m^2/s^5] of the manoeuvres an incomplete segment may hide (staging, a
+        turn's onset): steps of the acceleration inside every incomplete segment, a white
+        jerk of this density, carried as consider parameters in the published state
+        covariance (:mod:`~orbit_tracking.core.estimation.gap_manoeuvres`); the estimate
+        itself does not change. 0 = off.
+    gap_manoeuvre_step : float
+        Spacing [s] of those steps' instants.
     gm : float
         Gravitational parameter [m^3/s^2] of that constraint.
     segments : tuple of (start, end)
@@ -233,6 +241,8 @@ class EstimatorConfig:
     thrust_grid: float = 0.5
     jerk_prior: bool = True
     jerk_grid: float = 0.25
+    gap_manoeuvre_density: float = 30.0
+    gap_manoeuvre_step: float = 0.5
     gm: float = 3.986005e14
     segments: tuple[Segment, ...] = ()
     detect_segments: bool = True
@@ -271,6 +281,15 @@ class EstimatorConfig:
             raise ValueError('telemetry_error_spacing must be > 0')
         if not 0.0 < self.jerk_grid <= 10.0:
             raise ValueError(f'jerk_grid must lie in (0, 10] s; got {self.jerk_grid}')
+        if not 0.0 <= self.gap_manoeuvre_density <= 1e6:
+            raise ValueError(
+                f'gap_manoeuvre_density must lie in [0, 1e6] m^2/s^5; got '
+                f'{self.gap_manoeuvre_density}'
+            )
+        if not 0.01 <= self.gap_manoeuvre_step <= 10.0:
+            raise ValueError(
+                f'gap_manoeuvre_step must lie in [0.01, 10] s; got {self.gap_manoeuvre_step}'
+            )
         if self.telemetry_velocity_error not in TELEMETRY_VELOCITY_ERRORS:
             raise ValueError(
                 f'telemetry_velocity_error must be one of {TELEMETRY_VELOCITY_ERRORS}; '

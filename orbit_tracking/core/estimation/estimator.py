@@ -46,12 +46,14 @@ from collections.abc import Mapping, Sequence
 from dataclasses import replace
 
 import numpy as np
+import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.errors import OrbitTrackingError
 from orbit_tracking.core.estimation.config import EstimationError, EstimatorConfig, Segment
 from orbit_tracking.core.estimation.coverage import find_incomplete_segments, merge_segments
+from orbit_tracking.core.estimation.gap_manoeuvres import GapManoeuvres, gap_manoeuvres
 from orbit_tracking.core.estimation.gauss_newton import covariance, solve
 from orbit_tracking.core.estimation.knot_refinement import (
     choose_knots_safely,
@@ -91,6 +93,33 @@ REFINE_MAX_CHI2 = 3.0
 
 # ---------------------------------------------------------------------------------------
 # the window
+
+
+def _gap_manoeuvres(
+    prob: Problem,
+    jac: sp.csr_matrix | None,
+    cov: FloatArray,
+    tid: int,
+    segs: tuple[Segment, ...],
+    cfg: EstimatorConfig,
+    scale: float,
+) -> GapManoeuvres | None:
+    """The consider term of the manoeuvres target ``tid``'s incomplete segments may hide
+    (None when ``gap_manoeuvre_density`` is 0 or there is no segment)."""
+    if cfg.gap_manoeuvre_density <= 0.0 or not segs or jac is None:
+        return None
+    return gap_manoeuvres(
+        prob.rows,
+        jac,
+        cov,
+        prob.offsets[tid],
+        prob.trajs[tid].n_coef,
+        tid,
+        segs,
+        cfg.gap_manoeuvre_step,
+        cfg.gap_manoeuvre_density,
+        scale,
+    )
 
 
 def _rough_from_previous(prev: TargetSolution, t0: float, t1: float) -> RoughTrajectory | None:
@@ -387,6 +416,10 @@ def _estimate_once(
         out.decrement,
         cfg.max_unconverged_decrement,
     )
+    manoeuvres = {
+        tid: _gap_manoeuvres(prob, jac, cov, tid, segments[tid], cfg, verdict.covariance_scale)
+        for tid in selections
+    }
     cov = cov * verdict.covariance_scale
     targets = {}
     for tid, s in selections.items():
@@ -411,6 +444,7 @@ def _estimate_once(
             None if tel is None else tel.prior_sigma,
             prob.jerk_q.get(tid),
             _delays(tel, out.beta, cov),
+            manoeuvres[tid],
         )
     factors = {
         (b.station, f): float(b.factor[j])
@@ -444,6 +478,12 @@ def _estimate_once(
     if verdict.covariance_scale != near:
         msg += f'; covariance scaled by the misfit ({verdict.covariance_scale / near:.3g})'
     msg += isotropic_note(targets, t0, t1, cfg.nonlinear_sigma)
+    msg += ''.join(
+        f'; target {tid} covariance carries the manoeuvres its incomplete segments may hide '
+        f'({g.taus.size} acceleration steps, {g.density:g} m^2/s^5)'
+        for tid, g in sorted(manoeuvres.items())
+        if g is not None
+    )
     msg += ''.join(
         f'; target {tid} white-jerk prior {q:.3g} m^2/s^5'
         for tid, q in sorted(prob.jerk_q.items())

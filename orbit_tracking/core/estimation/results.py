@@ -14,6 +14,7 @@ from numpy.typing import NDArray
 
 from orbit_tracking.core.estimation.bspline import SplineAxis, SplineTrajectory
 from orbit_tracking.core.estimation.config import EstimationError, Segment
+from orbit_tracking.core.estimation.gap_manoeuvres import GapManoeuvres
 from orbit_tracking.core.estimation.knots import KnotSelection
 from orbit_tracking.core.estimation.linearity import isotropic
 
@@ -41,7 +42,9 @@ class TargetSolution:
     ``jerk_density`` is the white-jerk prior's density [m^2/s^5] estimated for this
     trajectory (None without the prior). ``telemetry_delays`` are the telemetry's
     estimated time-tag delays of position and velocity and their sigmas, ``(d_p, sigma,
-    d_v, sigma)`` [s] (None when the window did not estimate them).
+    d_v, sigma)`` [s] (None when the window did not estimate them). ``manoeuvres`` is the
+    consider term of the manoeuvres its incomplete segments may hide, which :meth:`states`
+    adds to the covariance (None when off or without segments).
     """
 
     target_id: int
@@ -57,6 +60,7 @@ class TargetSolution:
     telemetry_error_sigma: tuple[float, float] | None = None
     jerk_density: float | None = None
     telemetry_delays: tuple[float, float, float, float] | None = None
+    manoeuvres: GapManoeuvres | None = None
 
     @property
     def t0(self) -> float:
@@ -71,6 +75,8 @@ class TargetSolution:
         tt = np.asarray(t, dtype=np.float64)
         x = self.trajectory.states(self.coef, tt)
         cov = state_covariance(self.trajectory, self.covariance, tt)
+        if self.manoeuvres is not None:
+            cov = cov + self.manoeuvres.state_covariance(self.trajectory, tt)
         if not self.isotropic_spans:
             return x, cov
         inside = np.zeros(tt.shape[0], dtype=bool)

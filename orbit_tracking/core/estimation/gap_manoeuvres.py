@@ -1,0 +1,177 @@
+"""Manoeuvres an incomplete segment may hide, carried in the published covariance.
+
+Inside an incomplete segment one or two stations measure. A staging event or the onset
+of a turn there changes the acceleration, and the window's spline (whose knots the few
+measurements could support) cannot follow it; its formal covariance, conditional on the
+spline being the true shape, then claims a metre where the error is tens of metres.
+
+This module treats such manoeuvres as *consider parameters* (as range and orbit
+determination software does with errors it cannot estimate): on a grid of instants
+``tau_k`` inside every segment, a step ``a_k`` of the world acceleration (three axes),
+each with prior variance ``q * step``: a white jerk of density ``q`` [m^2/s^5]
+(``gap_manoeuvre_density``) restricted to the segments. The estimate is left as it is
+(the steps are not solved for); its state covariance becomes that of the model with the
+steps, their information from the data included:
+
+    true(t) = B(t) x + sum_k a_k (t - tau_k)_+^2 / 2,
+    M = H_c^T H_c - U^T P U + C^-1,  U = J^T H_c,  L = P U,
+    cov_state(t) += (B(t) L - B_c(t)) M^-1 (B(t) L - B_c(t))^T,
+
+with ``J`` the whitened Jacobian of the window's parameters, ``P = (J^T J)^-1`` their
+covariance, ``H_c`` the whitened measurement sensitivity to the steps and ``B_c(t)`` the
+steps' own effect on the state. Where the measurements determine the acceleration (a
+pulse radar, telemetry velocity) the data part of ``M`` is large and the term small;
+where they do not, it grows with the prior, as it should.
+
+A step moves every later row, so ``H_c`` is dense after its instant. But a row after all
+of a segment's instants depends on them through a quadratic in ``tau``: its part of
+``H_c`` is ``Q V``, ``Q`` nine numbers per row and ``V`` the instants' powers. Only the rows
+inside a segment (where few stations measure) are built column by column; all others
+cost nine columns, not three per instant.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import NDArray
+
+from orbit_tracking.core.estimation.bspline import SplineTrajectory
+from orbit_tracking.core.estimation.config import Segment
+
+__all__ = ['GapManoeuvres', 'gap_manoeuvres', 'instants']
+
+FloatArray = NDArray[np.float64]
+
+MAX_INSTANTS = 240
+"""Most step instants per target (the grid is coarsened beyond this)."""
+
+
+@dataclass(frozen=True)
+class GapManoeuvres:
+    """The consider term of one target: step instants ``taus`` (k,) [s], the gain ``gain``
+    (n_coef, 3k) of the spline coefficients to the steps (``P U``) and the steps'
+    posterior covariance ``posterior`` (3k, 3k); column ``3 j + i`` is instant ``j``, world
+    axis ``i``."""
+
+    taus: FloatArray
+    gain: FloatArray
+    posterior: FloatArray
+    density: float
+
+    def state_covariance(self, traj: SplineTrajectory, t: FloatArray) -> FloatArray:
+        """The term added to the state covariance (m, 6, 6) at times ``t``."""
+        m = t.shape[0]
+        g = np.empty((m, 6, self.gain.shape[1]))
+        for nu in (0, 1):
+            bl = np.asarray(traj.world_design(t, nu) @ self.gain)  # (3m, 3k)
+            g[:, 3 * nu : 3 * nu + 3] = bl.reshape(m, 3, -1)
+        d = np.maximum(t[:, None] - self.taus[None, :], 0.0)  # (m, k)
+        for i in range(3):
+            g[:, i, i::3] -= 0.5 * d**2
+            g[:, 3 + i, i::3] -= d
+        gp = (g.reshape(6 * m, -1) @ self.posterior).reshape(m, 6, -1)
+        out = np.matmul(gp, np.transpose(g, (0, 2, 1)))
+        return 0.5 * (out + np.transpose(out, (0, 2, 1)))
+
+
+def instants(segments: tuple[Segment, ...], step: float) -> tuple[FloatArray, FloatArray]:
+    """The step instants: every ``step`` seconds across each segment, ends included,
+    coarsened so that there are at most :data:`MAX_INSTANTS`; and the time each stands
+    for [s] (a segment's instants share its length)."""
+    length = sum(b - a for a, b in segments)
+    if length <= 0.0:
+        return np.zeros(0), np.zeros(0)
+    step = max(step, length / (MAX_INSTANTS - 2 * len(segments)))
+    taus, widths = [], []
+    for a, b in segments:
+        n = max(int(np.ceil((b - a) / step)), 1)
+        w = np.full(n + 1, (b - a) / n)
+        w[[0, -1]] *= 0.5
+        taus.append(np.linspace(a, b, n + 1))
+        widths.append(w)
+    tau, width = np.concatenate(taus), np.concatenate(widths)
+    order = np.argsort(tau, kind='stable')
+    return tau[order], width[order]
+
+
+def gap_manoeuvres(
+    rows: list[tuple[int, FloatArray, FloatArray, FloatArray, bool]],
+    jac: sp.csr_matrix,
+    cov: FloatArray,
+    offset: int,
+    n_coef: int,
+    target: int,
+    segments: tuple[Segment, ...],
+    step: float,
+    density: float,
+    scale: float = 1.0,
+) -> GapManoeuvres | None:
+    """The consider term of ``target``: acceleration steps every ``step`` seconds inside
+    ``segments`` (:func:`instants`), each standing for its share of a white jerk of
+    density ``density`` (prior variance ``density * width``).
+
+    ``rows`` are the problem's per-row records (target, time, whitened d/d position and
+    d/d velocity, telemetry flag) in the order of the rows of ``jac``; ``cov`` is
+    ``(J^T J)^-1`` over all parameters and ``offset``, ``n_coef`` locate the target's
+    coefficients in it. ``scale`` is the factor the window's covariance was scaled by for
+    its misfit (the data are that much less informative). None when off or without
+    segments.
+    """
+    segs = tuple((float(a), float(b)) for a, b in segments if b > a)
+    taus, widths = instants(segs, step)
+    k = taus.size
+    if k == 0 or density <= 0.0:
+        return None
+    t = np.concatenate([r[1] for r in rows])
+    mine = np.concatenate([np.full(r[1].size, r[0] == target) for r in rows])
+    fp = np.concatenate([r[2] for r in rows])
+    fv = np.concatenate([r[3] for r in rows])
+    if t.size != jac.shape[0]:
+        raise ValueError('rows do not match the Jacobian')
+    origin = float(taus[0])
+    s = t - origin
+    tau = taus - origin
+    # a row after instant tau: fp (s - tau)^2 / 2 + fv (s - tau) = sum_p Q[:, 3 i + p] tau^p
+    q = np.zeros((t.size, 9))
+    for i in range(3):
+        q[:, 3 * i] = fp[:, i] * 0.5 * s**2 + fv[:, i] * s
+        q[:, 3 * i + 1] = -(fp[:, i] * s + fv[:, i])
+        q[:, 3 * i + 2] = 0.5 * fp[:, i]
+    v = np.zeros((9, 3 * k))
+    for i in range(3):
+        for p in range(3):
+            v[3 * i + p, i::3] = tau**p
+    hth = np.zeros((3 * k, 3 * k))
+    u = np.zeros((jac.shape[1], 3 * k))
+    for j, (a, b) in enumerate(segs):
+        own = np.flatnonzero((taus >= a) & (taus <= b))
+        lo, hi = 3 * int(own[0]), 3 * int(own[-1]) + 3
+        # rows inside the segment: the earlier segments' steps as quadratics, its own dense
+        ri = np.flatnonzero(mine & (t > a) & (t <= b))
+        d = np.maximum(s[ri, None] - tau[None, own], 0.0)
+        h = np.empty((ri.size, hi))
+        h[:, :lo] = q[ri] @ v[:, :lo]
+        for i in range(3):
+            h[:, lo + i : hi : 3] = fp[ri, i, None] * (0.5 * d**2) + fv[ri, i, None] * d
+        hth[:hi, :hi] += h.T @ h
+        u[:, :hi] += np.asarray(jac[ri].T @ h)
+        # rows after it, up to the next segment: every step so far as a quadratic
+        end = segs[j + 1][0] if j + 1 < len(segs) else np.inf
+        ra = np.flatnonzero(mine & (t > b) & (t <= end))
+        qa = q[ra]
+        hth[:hi, :hi] += v[:, :hi].T @ (qa.T @ qa) @ v[:, :hi]
+        u[:, :hi] += np.asarray(jac[ra].T @ qa) @ v[:, :hi]
+    pu = cov @ u
+    info = (hth - u.T @ pu) / scale
+    info = 0.5 * (info + info.T)
+    info[np.diag_indices_from(info)] += 1.0 / (density * np.repeat(widths, 3))
+    posterior = np.linalg.inv(info)
+    return GapManoeuvres(
+        taus=taus.copy(),
+        gain=pu[offset : offset + n_coef].copy(),
+        posterior=0.5 * (posterior + posterior.T),
+        density=density,
+    )
