@@ -8,10 +8,11 @@ spline being the true shape, then claims a metre where the error is tens of metr
 This module treats such manoeuvres as *consider parameters* (as range and orbit
 determination software does with errors it cannot estimate): on a grid of instants
 ``tau_k`` inside every segment, a step ``a_k`` of the world acceleration (three axes),
-each with prior variance ``q * step``: a white jerk of density ``q`` [m^2/s^5]
-(``gap_manoeuvre_density``) restricted to the segments. The estimate is left as it is
-(the steps are not solved for); its state covariance becomes that of the model with the
-steps, their information from the data included:
+each with prior variance ``q * width`` (``width`` the time it stands for): a white jerk
+of density ``q`` [m^2/s^5] (``gap_manoeuvre_density``) restricted to the segments. The
+estimate is left as it is (the steps are not solved for); its state covariance becomes
+the posterior covariance of the model with the steps, their information from the data
+included:
 
     true(t) = B(t) x + sum_k a_k (t - tau_k)_+^2 / 2,
     M = H_c^T H_c - U^T P U + C^-1,  U = J^T H_c,  L = P U,
@@ -21,7 +22,9 @@ with ``J`` the whitened Jacobian of the window's parameters, ``P = (J^T J)^-1`` 
 covariance, ``H_c`` the whitened measurement sensitivity to the steps and ``B_c(t)`` the
 steps' own effect on the state. Where the measurements determine the acceleration (a
 pulse radar, telemetry velocity) the data part of ``M`` is large and the term small;
-where they do not, it grows with the prior, as it should.
+where they do not, it grows with the prior, as it should. The posterior is centred on
+the published estimate while the residuals show no sign of a step; a step the data see
+but the knots leave unfitted (the knot test's business) is not covered by it.
 
 A step moves every later row, so ``H_c`` is dense after its instant. But a row after all
 of a segment's instants depends on them through a quadratic in ``tau``: its part of
