@@ -38,7 +38,14 @@ def assert_within_sigmas(t, state, cov, truth, k=5.0):
     zv = np.abs(ev[ok]) / (sig[ok, 3:] + 2e-3 / k)
     assert zp.max() <= k, f'position error {zp.max():.1f} sigma at t = {t[ok][zp.argmax() // 3]}'
     assert zv.max() <= k, f'velocity error {zv.max():.1f} sigma'
-    assert np.all(sig[:, :3] < 1.0), 'sigmas too large to mean anything here'
+    # inside the short pass's incomplete segment (12-18 s: cw03 and cw07 alone) the
+    # covariance also carries the manoeuvres it may hide (gap_manoeuvre_density) along
+    # the direction two CW radars leave open: metres, and tens of metres where a window
+    # starts inside the segment (its first states are then extrapolated back through
+    # the segment's possible steps); elsewhere it is the formal one
+    inside = (t > 12.0) & (t < 18.0)
+    assert np.all(sig[~inside, :3] < 1.0), 'sigmas too large to mean anything here'
+    assert np.all(sig[inside, :3] < 100.0), 'sigmas too large even for the segment'
 
 
 # -- estimator/window_states ------------------------------------------------------------------
