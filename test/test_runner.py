@@ -107,3 +107,144 @@ def test_a_hanging_cleanup_ends_the_process_with_a_stack_dump() -> None:
     assert proc.returncode == 1, proc.stderr
     assert 'returned' not in proc.stdout
     assert 'destroy_node' in proc.stderr  # where it hung
+
+
+# -- SIGINT / SIGTERM (StopRequest) --------------------------------------------------------
+
+SIGNALLED = textwrap.dedent(
+    """
+    import os, sys, time
+    from rclpy.node import Node
+    from orbit_tracking.ros import runner
+
+    WHERE, SECONDS = sys.argv[1], float(sys.argv[2])  # where the callback spends its time
+    # code compiled under a file name of the core (numerical work) or of the ROS layer
+    BUSY = compile(
+        'def busy(seconds):\\n'
+        '    end = time.monotonic() + seconds\\n'
+        '    while time.monotonic() < end:\\n'
+        '        sum(range(1000))\\n',
+        os.path.join(runner._PACKAGE, WHERE, 'busy_for_test.py'),
+        'exec',
+    )
+    space = {'time': time}
+    exec(BUSY, space)
+
+    class Busy(Node):
+        def __init__(self):
+            super().__init__('runner_signal_test')
+            if WHERE == 'construction':
+                print('building', flush=True)
+                time.sleep(SECONDS)
+            self.create_timer(0.05, self.tick)
+
+        def tick(self):
+            print('busy', flush=True)
+            if WHERE != 'construction':
+                space['busy'](SECONDS)
+            print('callback finished', flush=True)
+
+    t0 = time.monotonic()
+    runner.run_node(Busy, [])
+    print(f'returned after {time.monotonic() - t0:.2f} s', flush=True)
+    """
+)
+
+
+def _signalled(where: str, seconds: float, signals: list[int], after: str = 'busy'):
+    """Run the script, send ``signals`` (0.3 s apart) once it printed ``after``; return
+    (exit status, stdout, stderr, seconds from the first signal to the exit)."""
+    import signal as _signal  # noqa: F401  (the caller's signal numbers)
+    import time
+
+    env = dict(os.environ, PYTHONPATH=f'{ROOT}{os.pathsep}{os.environ.get("PYTHONPATH", "")}')
+    proc = subprocess.Popen(
+        [sys.executable, '-c', SIGNALLED, where, str(seconds)],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    assert proc.stdout is not None
+    lines = []
+    for line in proc.stdout:
+        lines.append(line)
+        if line.strip() == after:
+            break
+    time.sleep(0.2)
+    t0 = time.monotonic()
+    for i, s in enumerate(signals):
+        if i:
+            time.sleep(0.3)
+        proc.send_signal(s)
+    try:
+        out, err = proc.communicate(timeout=90)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, err = proc.communicate()
+    return proc.returncode, ''.join(lines) + out, err, time.monotonic() - t0
+
+
+@pytest.mark.dds
+@pytest.mark.parametrize('signum', [2, 15])  # SIGINT, SIGTERM
+def test_a_signal_interrupts_numerical_work_in_the_core_at_once(signum: int) -> None:
+    code, out, err, took = _signalled('core', 60.0, [signum])
+    assert code == 0, err
+    assert 'callback finished' not in out
+    assert 'returned after' in out
+    assert 'Traceback' not in err
+    assert took < 20.0, f'{took:.1f} s to stop'  # not the 60 s of work
+
+
+@pytest.mark.dds
+def test_a_signal_lets_a_callback_outside_the_core_finish_then_stops() -> None:
+    code, out, err, took = _signalled('ros', 3.0, [2])
+    assert code == 0, err
+    assert out.count('callback finished') == 1  # this one, and no callback after it
+    assert out.count('busy') == 1
+    assert 'returned after' in out
+    assert took < 30.0
+
+
+@pytest.mark.dds
+def test_a_second_signal_interrupts_anywhere() -> None:
+    code, out, err, took = _signalled('ros', 60.0, [2, 2])
+    assert code == 0, err
+    assert 'callback finished' not in out
+    assert took < 20.0, f'{took:.1f} s to stop'
+
+
+@pytest.mark.dds
+def test_a_signal_while_the_node_is_built_stops_it_once_built() -> None:
+    code, out, err, took = _signalled('construction', 2.0, [2], after='building')
+    assert code == 0, err
+    assert 'busy' not in out  # no callback ran
+    assert 'returned after' in out
+    assert 'Traceback' not in err
+
+
+def test_only_the_cores_numerical_frames_are_interruptible() -> None:
+    from orbit_tracking.ros import runner
+
+    def frame_in(rel: str, inner: str | None = None):
+        src = 'import sys\ndef f(g):\n    return g() if g else sys._getframe()\n'
+        space: dict = {}
+        exec(compile(src, os.path.join(runner._PACKAGE, rel), 'exec'), space)
+        g = None
+        if inner is not None:
+            space_inner: dict = {}
+            exec(compile(src, inner, 'exec'), space_inner)
+            g = lambda: space_inner['f'](None)  # noqa: E731
+        return space['f'](g)
+
+    assert runner.interruptible(frame_in('core/estimation/x.py'))
+    assert runner.interruptible(frame_in('core/estimation/x.py', '/usr/lib/numpy/core/x.py'))
+    assert not runner.interruptible(frame_in('core/data/journal.py'))
+    assert not runner.interruptible(frame_in('ros/results_node.py'))
+    assert not runner.interruptible(
+        frame_in('core/estimation/x.py', '/venv/site-packages/rclpy/publisher.py')
+    )
+    assert not runner.interruptible(
+        frame_in('core/estimation/x.py', '/venv/site-packages/geometry_msgs/msg/_point.py')
+    )
+    assert not runner.interruptible(None)

@@ -284,7 +284,7 @@ def _decide(
         if ph.tracebacks:
             crash = 'traceback in ' + ', '.join(sorted(ph.tracebacks))
         elif alone and run.end_problem:
-            crash = run.end_problem.splitlines()[0][:300]
+            crash = run.end_problem[:3000]  # with the end of the node's log
         results.append(
             FaultResult(
                 f,
