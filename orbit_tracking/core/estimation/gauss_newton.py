@@ -33,6 +33,7 @@ from numpy.typing import NDArray
 from orbit_tracking.core.estimation.config import EstimationError, EstimatorConfig
 from orbit_tracking.core.estimation.priors import reestimate_priors
 from orbit_tracking.core.estimation.problem import ROBUST_KINDS, GateKey, Problem
+from orbit_tracking.core.estimation.scaling import jacobi_scaled, scaled_solve
 from orbit_tracking.core.models.measurements import residual
 
 __all__ = [
@@ -79,14 +80,7 @@ def _normal_solve(n: FloatArray, g: FloatArray, lam: float = 0.0) -> tuple[Float
     """Step ``(N + lam D) step = g`` on the Jacobi-scaled normal matrix (``D`` its
     diagonal; ``lam = 0`` is the Gauss-Newton step with :data:`DAMPING`), and whether
     Cholesky succeeded."""
-    d = np.sqrt(np.maximum(np.diag(n), 1e-300))
-    ns = n / d[:, None] / d[None, :]
-    ns[np.diag_indices_from(ns)] += DAMPING + lam
-    try:
-        cf = sla.cho_factor(ns, check_finite=False)
-        return sla.cho_solve(cf, g / d, check_finite=False) / d, True
-    except np.linalg.LinAlgError:
-        return np.linalg.lstsq(ns, g / d, rcond=1e-12)[0] / d, False
+    return scaled_solve(n, g, DAMPING + lam)
 
 
 LM_LAMBDAS = tuple(10.0**k for k in range(-6, 9))
@@ -556,8 +550,7 @@ def covariance(
     if jac is None:
         raise EstimationError('no measurement rows to estimate from')
     n = (jac.T @ jac).toarray()
-    d = np.sqrt(np.maximum(np.diag(n), 1e-300))
-    ns = n / d[:, None] / d[None, :]
+    ns, d = jacobi_scaled(n)
     ev = np.linalg.eigvalsh(ns)
     cond = float(ev[-1] / ev[0]) if ev[0] > 0 else math.inf
     try:

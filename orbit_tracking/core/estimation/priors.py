@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 
 from orbit_tracking.core.estimation.config import EstimatorConfig
 from orbit_tracking.core.estimation.problem import Problem
+from orbit_tracking.core.estimation.scaling import jacobi_scaled
 from orbit_tracking.core.estimation.telemetry_block import TelemetryBlock, error_step_matrix
 
 __all__ = ['ERROR_SIGMA_RANGE', 'JERK_Q_FLOOR', 'reestimate_priors']
@@ -146,9 +147,7 @@ def _jerk_densities(prob: Problem, beta: FloatArray, normal: FloatArray, grad: F
             for other, sl2, _, pen2 in blocks:
                 if other != tid:
                     g_t[sl2] -= pen2 @ beta[sl2] / q[other]
-            d = np.sqrt(np.maximum(np.diag(a), 1e-300))
-            a_s = a / d[:, None] / d[None, :]
-            a_s[np.diag_indices_from(a_s)] += 1e-10
+            a_s, d = jacobi_scaled(a, 1e-10)
             try:
                 mu, v = sla.eigh(p_full / d[:, None] / d[None, :], a_s)
             except (np.linalg.LinAlgError, ValueError):

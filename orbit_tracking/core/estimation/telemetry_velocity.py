@@ -28,6 +28,7 @@ from scipy.stats import chi2
 
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.estimation.config import EstimatorConfig
+from orbit_tracking.core.estimation.scaling import scaled_solve
 
 if TYPE_CHECKING:
     from orbit_tracking.core.estimation.problem import Problem
@@ -121,11 +122,8 @@ def score_statistic(
     # prior of tens of metres beside stiff trajectory coefficients), and unscaled the
     # cut-off of the least-squares solve dropped directions at random (a frozen station
     # bias, which changes nothing, moved a statistic from 29 to 1.7)
-    d = np.sqrt(np.maximum(np.diag(a), 1e-300))
-    a_s = a / d[:, None] / d[None, :]
-    a_s[np.diag_indices_from(a_s)] += 1e-10
-    c = np.asarray(jo.T @ jw) / d[:, None]
-    s = jw.T @ jw - c.T @ np.linalg.lstsq(a_s, c, rcond=1e-12)[0]
+    c = np.asarray(jo.T @ jw)
+    s = jw.T @ jw - c.T @ scaled_solve(a, c, 1e-10, cholesky=False)[0]
     return quadratic_score(jw.T @ r, s)
 
 
