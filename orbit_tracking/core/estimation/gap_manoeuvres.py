@@ -26,11 +26,11 @@ where they do not, it grows with the prior, as it should. The posterior is centr
 the published estimate while the residuals show no sign of a step; a step the data see
 but the knots leave unfitted (the knot test's business) is not covered by it.
 
-A step moves every later row, so ``H_c`` is dense after its instant. But a row after all
-of a segment's instants depends on them through a quadratic in ``tau``: its part of
-``H_c`` is ``Q V``, ``Q`` nine numbers per row and ``V`` the instants' powers. Only the rows
-inside a segment (where few stations measure) are built column by column; all others
-cost nine columns, not three per instant.
+A step moves every later row, so ``H_c`` is dense after its instant. But a row depends on
+the steps before it through a quadratic in ``tau``: its part of ``H_c`` is ``Q V``, ``Q``
+nine numbers per row and ``V`` the instants' powers. So ``H_c^T H_c`` and ``J^T H_c`` are
+built from 9 x 9 and n x 9 sums over the rows after each instant, never from ``H_c``
+itself: the cost grows with the rows plus the square of the instants, not their product.
 """
 
 from __future__ import annotations
@@ -64,12 +64,19 @@ class GapManoeuvres:
     posterior: FloatArray
     density: float
 
-    def state_covariance(self, traj: SplineTrajectory, t: FloatArray) -> FloatArray:
-        """The term added to the state covariance (m, 6, 6) at times ``t``."""
+    def state_covariance(
+        self,
+        traj: SplineTrajectory,
+        t: FloatArray,
+        design: tuple[sp.csr_matrix, sp.csr_matrix] | None = None,
+    ) -> FloatArray:
+        """The term added to the state covariance (m, 6, 6) at times ``t``; ``design``:
+        the position and velocity design matrices at ``t``, if already built."""
         m = t.shape[0]
         g = np.empty((m, 6, self.gain.shape[1]))
         for nu in (0, 1):
-            bl = np.asarray(traj.world_design(t, nu) @ self.gain)  # (3m, 3k)
+            dm = design[nu] if design is not None else traj.world_design(t, nu)
+            bl = np.asarray(dm @ self.gain)  # (3m, 3k)
             g[:, 3 * nu : 3 * nu + 3] = bl.reshape(m, 3, -1)
         d = np.maximum(t[:, None] - self.taus[None, :], 0.0)  # (m, k)
         for i in range(3):
@@ -147,26 +154,28 @@ def gap_manoeuvres(
     for i in range(3):
         for p in range(3):
             v[3 * i + p, i::3] = tau**p
+    # a row with n steps before it (n = 1..k) has H_c row Q_r V over their 3n columns;
+    # H_c^T H_c between instants a and b and J^T H_c at instant a are sums over the rows
+    # after max(a, b), resp. after a: sums taken from the last instant back
+    n_before = np.searchsorted(tau, s, side='left')
+    act = np.flatnonzero(mine & (n_before > 0))
+    act = act[np.argsort(n_before[act], kind='stable')]
+    bounds = np.searchsorted(n_before[act], np.arange(1, k + 2), side='left')
     hth = np.zeros((3 * k, 3 * k))
     u = np.zeros((jac.shape[1], 3 * k))
-    for j, (a, b) in enumerate(segs):
-        own = np.flatnonzero((taus >= a) & (taus <= b))
-        lo, hi = 3 * int(own[0]), 3 * int(own[-1]) + 3
-        # rows inside the segment: the earlier segments' steps as quadratics, its own dense
-        ri = np.flatnonzero(mine & (t > a) & (t <= b))
-        d = np.maximum(s[ri, None] - tau[None, own], 0.0)
-        h = np.empty((ri.size, hi))
-        h[:, :lo] = q[ri] @ v[:, :lo]
-        for i in range(3):
-            h[:, lo + i : hi : 3] = fp[ri, i, None] * (0.5 * d**2) + fv[ri, i, None] * d
-        hth[:hi, :hi] += h.T @ h
-        u[:, :hi] += np.asarray(jac[ri].T @ h)
-        # rows after it, up to the next segment: every step so far as a quadratic
-        end = segs[j + 1][0] if j + 1 < len(segs) else np.inf
-        ra = np.flatnonzero(mine & (t > b) & (t <= end))
-        qa = q[ra]
-        hth[:hi, :hi] += v[:, :hi].T @ (qa.T @ qa) @ v[:, :hi]
-        u[:, :hi] += np.asarray(jac[ra].T @ qa) @ v[:, :hi]
+    tq = np.zeros((9, 9))
+    wq = np.zeros((jac.shape[1], 9))
+    for m in range(k - 1, -1, -1):
+        these = act[bounds[m] : bounds[m + 1]]  # the rows with exactly m + 1 steps before
+        if these.size:
+            qm = q[these]
+            tq += qm.T @ qm
+            wq += np.asarray(jac[these].T @ qm)
+        vm = v[:, 3 * m : 3 * m + 3]
+        block = vm.T @ tq @ v[:, : 3 * m + 3]  # (3, 3m + 3)
+        hth[3 * m : 3 * m + 3, : 3 * m + 3] = block
+        hth[: 3 * m + 3, 3 * m : 3 * m + 3] = block.T
+        u[:, 3 * m : 3 * m + 3] = wq @ vm
     pu = cov @ u
     info = (hth - u.T @ pu) / scale
     info = 0.5 * (info + info.T)

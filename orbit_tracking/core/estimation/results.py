@@ -74,9 +74,10 @@ class TargetSolution:
         """World-frame (position, velocity) (m, 6) and their covariance (m, 6, 6)."""
         tt = np.asarray(t, dtype=np.float64)
         x = self.trajectory.states(self.coef, tt)
-        cov = state_covariance(self.trajectory, self.covariance, tt)
+        design = world_designs(self.trajectory, tt)
+        cov = state_covariance(self.trajectory, self.covariance, tt, design)
         if self.manoeuvres is not None:
-            cov = cov + self.manoeuvres.state_covariance(self.trajectory, tt)
+            cov = cov + self.manoeuvres.state_covariance(self.trajectory, tt, design)
         if not self.isotropic_spans:
             return x, cov
         inside = np.zeros(tt.shape[0], dtype=bool)
@@ -94,17 +95,28 @@ class TargetSolution:
         return n
 
 
-def state_covariance(traj: SplineTrajectory, cov: FloatArray, t: FloatArray) -> FloatArray:
+Designs = tuple[sp.csr_matrix, sp.csr_matrix]
+"""World-frame design matrices of position and velocity at some times (3m, n_coef) each."""
+
+
+def world_designs(traj: SplineTrajectory, t: FloatArray) -> Designs:
+    """The position and velocity design matrices of ``traj`` at ``t`` (built once for the
+    formal covariance and the manoeuvre term)."""
+    return traj.world_design(t, 0), traj.world_design(t, 1)
+
+
+def state_covariance(
+    traj: SplineTrajectory, cov: FloatArray, t: FloatArray, design: Designs | None = None
+) -> FloatArray:
     """Covariance (m, 6, 6) of world position and velocity from the coefficient
-    covariance ``cov`` (n_coef, n_coef)."""
+    covariance ``cov`` (n_coef, n_coef); ``design``: :func:`world_designs` at ``t``, if
+    already built."""
     m = t.shape[0]
-    g = sp.vstack([traj.world_design(t, 0), traj.world_design(t, 1)]).tocsr()
+    g = sp.vstack(design if design is not None else world_designs(traj, t)).tocsr()
     gp = np.asarray(g @ cov)  # (6m, n)
     gd = g.toarray() if g.shape[0] * g.shape[1] < 5e7 else None
     if gd is None:
         raise EstimationError('too many output times for one covariance evaluation')
-    rows = np.concatenate([np.arange(m) * 3 + c for c in range(3)] + [])
-    del rows
     # index of (time j, component c) in g: position rows 3j + c, velocity rows 3m + 3j + c
     idx = np.empty((m, 6), dtype=int)
     for c in range(3):
