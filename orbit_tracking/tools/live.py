@@ -342,11 +342,14 @@ class LiveResult:
         return out
 
 
-def _tail(path: Path, n: int = 3000) -> str:
+def log_tail(path: Path, n: int = 3000) -> str:
+    """The last ``n`` characters of a process log, without the list of extension modules
+    that faulthandler prints after a crash's stack."""
     try:
-        return path.read_text(errors='replace')[-n:]
+        lines = path.read_text(errors='replace').splitlines()
     except OSError:
         return ''
+    return '\n'.join(ln for ln in lines if not ln.startswith('Extension modules:'))[-n:]
 
 
 def run_live(
@@ -423,7 +426,7 @@ def run_live(
             if proc.poll() is not None:
                 raise RuntimeError(
                     f'live pass: {name} exited with status {proc.returncode} while waiting '
-                    f'for {what}; end of {log_of(name)}:\n{_tail(log_of(name))}'
+                    f'for {what}; end of {log_of(name)}:\n{log_tail(log_of(name))}'
                 )
         if time.monotonic() > deadline:
             raise RuntimeError(f'live pass: timed out waiting for {what} (logs in {logs})')

@@ -63,6 +63,7 @@ from orbit_tracking.tools.bench.fault_monitor import (
     residual_gate,
     wait_graph_clear,
 )
+from orbit_tracking.tools.live import log_tail
 
 __all__ = [
     'DEFAULT_BAG',
@@ -343,15 +344,6 @@ class _Replay:
                 out[n] = text[text.index(_TRACEBACK) :][:3000]
         return out
 
-    def log_tail(self, node: str, lines: int = 25) -> str:
-        """The last ``lines`` lines of a node's log (a crash's stack, with faulthandler on)."""
-        try:
-            text = self.logs[node].read_bytes().decode(errors='replace')
-        except (KeyError, OSError) as exc:
-            return f'(no log: {exc})'
-        keep = [ln for ln in text.splitlines() if not ln.startswith('Extension modules:')]
-        return '\n'.join(keep[-lines:])
-
     def outside(self) -> None:
         """A traceback logged outside any phase is a problem of the replay as a whole."""
         for n, text in self.scan().items():
@@ -580,10 +572,8 @@ class _Replay:
             for n in NODES:
                 code = self.run.exit_codes.get(n)
                 if code not in _CLEAN_EXIT and not self.run.end_problem:
-                    self.run.end_problem = (
-                        f'{n} exited with status {code} on SIGINT; the end of its log:\n'
-                        + self.log_tail(n)
-                    )
+                    tail = log_tail(self.logs[n], 2500)
+                    self.run.end_problem = f'{n} exited with status {code} on SIGINT:\n{tail}'
         self.run.wall_s = time.monotonic() - self.t0
         return self.run
 
