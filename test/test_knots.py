@@ -390,3 +390,28 @@ def test_densification_stays_bounded_whatever_the_rough_trajectory_errors(kind):
         assert np.min(np.diff(np.unique(ax.knots))) >= 2.0 * dt - 1e-9
     sel = choose_knots(rough, 0.0, 60.0, segments, KnotConfig())
     assert max(sel.selected) <= 2 * base.size
+
+
+def test_long_spans_without_a_knot_are_filled_from_a_grid_that_ignores_the_edges():
+    from orbit_tracking.core.estimation.bspline import SplineAxis
+    from orbit_tracking.core.estimation.knots import _fill_long_spans
+
+    cfg = KnotConfig(max_spacing=5.0)
+    event = [31.2] * 3  # a repeated (event) knot stays repeated
+    ax = SplineAxis.from_interior(np.array([12.0, *event, 33.0]), 0.3, 60.3, cfg.degree)
+    out = _fill_long_spans(ax, cfg).interior
+    np.testing.assert_allclose(out, [5, 12, 15, 20, 25, *event, 33, 40, 45, 50, 55])
+    gaps = np.diff(np.concatenate([[0.3], out, [60.3]]))
+    assert gaps.max() <= 1.5 * cfg.max_spacing
+    # moving the window's edges by a microsecond adds the same knots
+    moved = SplineAxis.from_interior(np.array([12.0, *event, 33.0]), 0.300001, 60.300001, 4)
+    np.testing.assert_array_equal(_fill_long_spans(moved, cfg).interior, out)
+    # an axis whose knots are close enough is left alone; 0 turns the limit off
+    dense = SplineAxis.from_interior(np.arange(3.0, 60.0, 4.0), 0.3, 60.3, cfg.degree)
+    assert _fill_long_spans(dense, cfg) is dense
+    bare = SplineAxis.from_interior(np.zeros(0), 0.3, 60.3, cfg.degree)
+    sel = KnotConfig(max_spacing=0.0)
+    assert sel.max_spacing == 0.0
+    with pytest.raises(ValueError, match='max_spacing'):
+        KnotConfig(max_spacing=-1.0)
+    assert _fill_long_spans(bare, cfg).interior.size == 11  # 5, 10, ..., 55

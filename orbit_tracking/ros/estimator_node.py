@@ -201,6 +201,16 @@ class EstimatorNode(StationInputs):
                 'Run the sparse (l1) knot selection; false keeps the densified knots.',
                 read_only=True,
             ),
+            max_spacing=declare(
+                self,
+                'max_knot_spacing',
+                5.0,
+                'Longest span [s] the knot selection may leave without a knot on an axis '
+                '(knots are added on a grid of this spacing); 0 = no limit.',
+                read_only=True,
+                min_value=0.0,
+                max_value=600.0,
+            ),
         )
         knot_method = declare(
             self,

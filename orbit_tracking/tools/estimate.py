@@ -207,6 +207,8 @@ def estimator_configs(
     node's): ``(estimator config, window config, bias_file)``."""
     p = parameters
     knots = KnotConfig(**{k: p[k] for k in _KNOT_PARAMETERS if k in p})
+    if 'max_knot_spacing' in p:
+        knots = replace(knots, max_spacing=float(p['max_knot_spacing']))
     est = EstimatorConfig(
         knots=knots,
         **{k: p[k] for k in ('knot_method', 'use_telemetry', 'gate_sigma') if k in p},

@@ -98,6 +98,14 @@ class KnotConfig:
         ... and its significance against the rough trajectory's noise.
     event_window : float
         Half-length of the local fits on each side of a candidate [s].
+    max_spacing : float
+        Longest span [s] the selection may leave without a knot on an axis: points of the
+        grid ``k * max_spacing`` at least ``max_spacing / 2`` from every selected knot are
+        added (0 = no limit). The rough trajectory's noise can hide a slow bend (an
+        aircraft's height over a turn, metres over tens of seconds) that the stations
+        see; without a knot the spline cannot take it, and its covariance, conditional on
+        that shape, claims centimetres. The white-jerk prior keeps the added knots from
+        fitting noise.
     """
 
     degree: int = 4
@@ -117,6 +125,7 @@ class KnotConfig:
     event_min_jump: float = 2.0
     event_sigma: float = 10.0
     event_window: float = 1.0
+    max_spacing: float = 5.0
 
     def __post_init__(self) -> None:
         if self.degree < 2:
@@ -136,6 +145,8 @@ class KnotConfig:
         for name in positive:
             if not getattr(self, name) > 0.0:
                 raise ValueError(f'{name} must be > 0; got {getattr(self, name)}')
+        if not self.max_spacing >= 0.0:
+            raise ValueError(f'max_spacing must be >= 0; got {self.max_spacing}')
         if self.jump_epsilon < 0.0 or self.max_rounds < 0:
             raise ValueError('jump_epsilon and max_rounds must be >= 0')
         if self.solver.upper() not in SOLVERS:
@@ -771,6 +782,8 @@ def choose_knots(
                 )
                 for ax in axes
             ]
+        if cfg.max_spacing > 0.0:
+            axes = [_fill_long_spans(ax, cfg) for ax in axes]
         selected = tuple(a.interior.size for a in axes)
     else:
         raise ValueError(
@@ -790,6 +803,21 @@ def choose_knots(
         method,
         info,
     )
+
+
+def _fill_long_spans(axis: SplineAxis, cfg: KnotConfig) -> SplineAxis:
+    """``axis`` with the points of the grid ``k * max_spacing`` inside its span that lie at
+    least ``max_spacing / 2`` from every interior knot and from the ends (see
+    :class:`KnotConfig`); the grid does not depend on the window's edges."""
+    h = cfg.max_spacing
+    t0, t1 = axis.t0, axis.t1
+    grid = np.arange(np.ceil(t0 / h), np.floor(t1 / h) + 1) * h
+    have = np.concatenate([[t0, t1], axis.interior])
+    far = np.min(np.abs(grid[:, None] - have[None, :]), axis=1) >= 0.5 * h if grid.size else grid
+    if not np.any(far):
+        return axis
+    interior = np.sort(np.concatenate([axis.interior, grid[far]]))  # repeats stay
+    return SplineAxis.from_interior(interior, t0, t1, cfg.degree)
 
 
 def selection_span(t0: float, t1: float, cfg: KnotConfig) -> tuple[float, float]:
