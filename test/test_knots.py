@@ -415,3 +415,6 @@ def test_long_spans_without_a_knot_are_filled_from_a_grid_that_ignores_the_edges
     with pytest.raises(ValueError, match='max_spacing'):
         KnotConfig(max_spacing=-1.0)
     assert _fill_long_spans(bare, cfg).interior.size == 11  # 5, 10, ..., 55
+    # none inside an incomplete segment
+    inside = _fill_long_spans(bare, cfg, [(38.0, 52.0)]).interior
+    np.testing.assert_allclose(inside, [5, 10, 15, 20, 25, 30, 35, 55])

@@ -105,7 +105,13 @@ class KnotConfig:
         aircraft's height over a turn, metres over tens of seconds) that the stations
         see; without a knot the spline cannot take it, and its covariance, conditional on
         that shape, claims centimetres. The white-jerk prior keeps the added knots from
-        fitting noise.
+        fitting noise. Not inside incomplete segments: the one or two stations there
+        cannot pin such a bend either, the added knots only loosened the fit (seed000_s1
+        gap error 0.023 -> 0.059 m), and the covariance carries the manoeuvres a segment
+        may hide (:mod:`~orbit_tracking.core.estimation.gap_manoeuvres`). Only when the
+        rough trajectory is telemetry: from fixes the knots are chosen again on the first
+        solution, which the measurements determine, and the added knots made seed003_q2
+        (satellite fixes) worse (3.6 -> 4.6 m, 0.7 -> 1.7 m/s).
     """
 
     degree: int = 4
@@ -782,8 +788,8 @@ def choose_knots(
                 )
                 for ax in axes
             ]
-        if cfg.max_spacing > 0.0:
-            axes = [_fill_long_spans(ax, cfg) for ax in axes]
+        if cfg.max_spacing > 0.0 and src.source == 'telemetry':
+            axes = [_fill_long_spans(ax, cfg, segments) for ax in axes]
         selected = tuple(a.interior.size for a in axes)
     else:
         raise ValueError(
@@ -805,15 +811,20 @@ def choose_knots(
     )
 
 
-def _fill_long_spans(axis: SplineAxis, cfg: KnotConfig) -> SplineAxis:
+def _fill_long_spans(
+    axis: SplineAxis, cfg: KnotConfig, segments: Sequence[tuple[float, float]] = ()
+) -> SplineAxis:
     """``axis`` with the points of the grid ``k * max_spacing`` inside its span that lie at
-    least ``max_spacing / 2`` from every interior knot and from the ends (see
-    :class:`KnotConfig`); the grid does not depend on the window's edges."""
+    least ``max_spacing / 2`` from every interior knot and from the ends, and outside the
+    incomplete ``segments`` (see :class:`KnotConfig`); the grid does not depend on the
+    window's edges."""
     h = cfg.max_spacing
     t0, t1 = axis.t0, axis.t1
     grid = np.arange(np.ceil(t0 / h), np.floor(t1 / h) + 1) * h
     have = np.concatenate([[t0, t1], axis.interior])
     far = np.min(np.abs(grid[:, None] - have[None, :]), axis=1) >= 0.5 * h if grid.size else grid
+    for a, b in segments:
+        far &= ~((grid > a) & (grid < b))
     if not np.any(far):
         return axis
     interior = np.sort(np.concatenate([axis.interior, grid[far]]))  # repeats stay
