@@ -415,6 +415,9 @@ def test_long_spans_without_a_knot_are_filled_from_a_grid_that_ignores_the_edges
     with pytest.raises(ValueError, match='max_spacing'):
         KnotConfig(max_spacing=-1.0)
     assert _fill_long_spans(bare, cfg).interior.size == 11  # 5, 10, ..., 55
+    # a span without a grid point (a short window), with or without segments
+    short = SplineAxis.from_interior(np.zeros(0), 61.0, 64.0, cfg.degree)
+    assert _fill_long_spans(short, cfg, [(62.0, 63.0)]) is short
     # none inside an incomplete segment
     inside = _fill_long_spans(bare, cfg, [(38.0, 52.0)]).interior
     np.testing.assert_allclose(inside, [5, 10, 15, 20, 25, 30, 35, 55])

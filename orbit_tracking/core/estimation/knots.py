@@ -821,8 +821,10 @@ def _fill_long_spans(
     h = cfg.max_spacing
     t0, t1 = axis.t0, axis.t1
     grid = np.arange(np.ceil(t0 / h), np.floor(t1 / h) + 1) * h
+    if grid.size == 0:
+        return axis
     have = np.concatenate([[t0, t1], axis.interior])
-    far = np.min(np.abs(grid[:, None] - have[None, :]), axis=1) >= 0.5 * h if grid.size else grid
+    far = np.min(np.abs(grid[:, None] - have[None, :]), axis=1) >= 0.5 * h
     for a, b in segments:
         far &= ~((grid > a) & (grid < b))
     if not np.any(far):
