@@ -55,3 +55,26 @@ def test_without_the_limit_the_same_window_is_confidently_wrong():
     assert nees > 8.0, nees  # measured: 14.4
     assert worst > 5.0, worst  # measured: 6.7
     assert rms > 0.4, rms  # measured: 0.54 m
+
+
+def test_without_fused_telemetry_no_knots_are_added():
+    """``use_telemetry`` false: the telemetry only places the knots, the stations alone
+    would have to determine the added ones (where none sees the target the states of
+    aircraft draw 14 went to 1e13 times its bound)."""
+    from dataclasses import replace
+
+    from orbit_tracking.core.estimation.knot_refinement import choose_knots_safely
+    from orbit_tracking.core.estimation.knots import rough_trajectory
+
+    case = _case('aircraft', 38)
+    est, _, _ = estimator_configs({})
+    rough = rough_trajectory(case.obs_est, TARGET, 80.0, 140.0)
+    assert rough is not None and rough.source == 'telemetry'
+
+    def selected(cfg):
+        return choose_knots_safely(rough, 80.0, 140.0, (), cfg, 'sparse', None).selected
+
+    fused, alone = selected(est), selected(replace(est, use_telemetry=False))
+    unlimited = selected(replace(est, knots=replace(est.knots, max_spacing=0.0)))
+    assert alone == unlimited
+    assert sum(fused) > sum(unlimited)

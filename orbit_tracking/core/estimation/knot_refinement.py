@@ -511,16 +511,22 @@ def choose_knots_safely(
 ) -> KnotSelection:
     """:func:`choose_knots`, but a failed l1 problem never loses the window: the other
     installed interior-point solver is tried, then the densified knots are kept (the
-    reason is recorded in the selection's ``info``)."""
+    reason is recorded in the selection's ``info``).
+
+    Without ``use_telemetry`` the telemetry only places the knots and ``max_spacing`` is
+    not applied: the stations alone then have to determine the added coefficients, and
+    where none sees the target (aircraft draw 14 of the robustness suite) the window's
+    states went to 1e13 times the bound."""
+    knots = cfg.knots if cfg.use_telemetry else replace(cfg.knots, max_spacing=0.0)
     try:
         return choose_knots(
-            rough, t0, t1, segments, cfg.knots, method, frame, baseline_spacing, events, context
+            rough, t0, t1, segments, knots, method, frame, baseline_spacing, events, context
         )
     except KnotSelectionError as first:
         reason = str(first)
-    if cfg.knots.solver.upper() != 'CLARABEL':
+    if knots.solver.upper() != 'CLARABEL':
         try:
-            alt = replace(cfg.knots, solver='CLARABEL')
+            alt = replace(knots, solver='CLARABEL')
             sel = choose_knots(
                 rough, t0, t1, segments, alt, method, frame, baseline_spacing, events, context
             )
@@ -528,7 +534,7 @@ def choose_knots_safely(
         except KnotSelectionError as second:
             reason += f'; CLARABEL: {second}'
     sel = choose_knots(
-        rough, t0, t1, segments, cfg.knots, 'dense', frame, events=events, context=context
+        rough, t0, t1, segments, knots, 'dense', frame, events=events, context=context
     )
     return replace(sel, info={'fallback': f'densified knots kept: {reason}'})
 
