@@ -513,11 +513,14 @@ def choose_knots_safely(
     installed interior-point solver is tried, then the densified knots are kept (the
     reason is recorded in the selection's ``info``).
 
-    Without ``use_telemetry`` the telemetry only places the knots and ``max_spacing`` is
-    not applied: the stations alone then have to determine the added coefficients, and
-    where none sees the target (aircraft draw 14 of the robustness suite) the window's
-    states went to 1e13 times the bound."""
-    knots = cfg.knots if cfg.use_telemetry else replace(cfg.knots, max_spacing=0.0)
+    ``max_spacing`` applies only where fused telemetry places the knots. From fixes the
+    knots are chosen again on the first solution, which the measurements determine, and
+    the added knots made seed003_q2 (satellite fixes) worse (3.6 -> 4.6 m, 0.7 -> 1.7
+    m/s). Without ``use_telemetry`` the stations alone would have to determine the added
+    coefficients, and where none sees the target (aircraft draw 14 of the robustness
+    suite) the window's states went to 1e13 times the bound."""
+    fused = cfg.use_telemetry and rough.source == 'telemetry'
+    knots = cfg.knots if fused else replace(cfg.knots, max_spacing=0.0)
     try:
         return choose_knots(
             rough, t0, t1, segments, knots, method, frame, baseline_spacing, events, context

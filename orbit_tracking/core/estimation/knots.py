@@ -108,10 +108,9 @@ class KnotConfig:
         fitting noise. Not inside incomplete segments: the one or two stations there
         cannot pin such a bend either, the added knots only loosened the fit (seed000_s1
         gap error 0.023 -> 0.059 m), and the covariance carries the manoeuvres a segment
-        may hide (:mod:`~orbit_tracking.core.estimation.gap_manoeuvres`). Only when the
-        rough trajectory is telemetry: from fixes the knots are chosen again on the first
-        solution, which the measurements determine, and the added knots made seed003_q2
-        (satellite fixes) worse (3.6 -> 4.6 m, 0.7 -> 1.7 m/s).
+        may hide (:mod:`~orbit_tracking.core.estimation.gap_manoeuvres`). The estimator
+        applies it only where fused telemetry places the knots
+        (:func:`~orbit_tracking.core.estimation.knot_refinement.choose_knots_safely`).
     """
 
     degree: int = 4
@@ -788,7 +787,7 @@ def choose_knots(
                 )
                 for ax in axes
             ]
-        if cfg.max_spacing > 0.0 and src.source == 'telemetry':
+        if cfg.max_spacing > 0.0:
             axes = [_fill_long_spans(ax, cfg, segments) for ax in axes]
         selected = tuple(a.interior.size for a in axes)
     else:
