@@ -485,7 +485,7 @@ def _estimate_once(
         if g is not None
     )
     msg += ''.join(
-        f'; target {tid} white-jerk prior {q:.3g} m^2/s^5'
+        f'; target {tid} white-jerk prior {q:.3g} m^2/s^5' + _raised_blocks(prob, tid, t0, cfg)
         for tid, q in sorted(prob.jerk_q.items())
         if q is not None
     )
@@ -718,3 +718,17 @@ def _delays(
     o = tel.delay_offset
     sig = np.sqrt(np.maximum(np.diag(cov)[o : o + 2], 0.0))
     return float(beta[o]), float(sig[0]), float(beta[o + 1]), float(sig[1])
+
+
+def _raised_blocks(prob: Problem, tid: int, t0: float, cfg: EstimatorConfig) -> str:
+    """The blocks of ``tid``'s white-jerk prior whose density the data raised, for the
+    window's message ('' when none)."""
+    scale = prob.jerk_scale.get(tid)
+    if scale is None or not np.any(scale > 1.0):
+        return ''
+    raised = np.flatnonzero(scale > 1.0)
+    spans = ', '.join(
+        f'{t0 + b * cfg.jerk_block:.1f}-{t0 + (b + 1) * cfg.jerk_block:.1f} s x{scale[b]:.3g}'
+        for b in raised
+    )
+    return f' (raised by the data in {spans})'
