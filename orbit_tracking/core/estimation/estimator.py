@@ -296,7 +296,16 @@ def _estimate_once(
         halvings += h2
         r, jac, cov, cond, singular = covariance(prob, out.beta)
     tel_note = ''
-    if cfg.telemetry_delays == 'auto' and prob.telemetry:
+    # the score tests below (delays, velocity error, knots) hold at the cost's optimum; a
+    # fit that did not reach it would have them ask for parameters at random, and each
+    # would only cost more solves that do not converge either
+    settled = out.converged
+    if not settled:
+        tel_note = (
+            '; model and knot tests skipped: the fit did not converge (they hold only at '
+            'its optimum)'
+        )
+    if cfg.telemetry_delays == 'auto' and prob.telemetry and settled:
         d_tests = delay_test(prob, out.beta, obs, cfg, t0, t1)
         add = {t.target: True for t in d_tests if t.delays}
         if add:
@@ -311,7 +320,7 @@ def _estimate_once(
             + f' (test {t.statistic:.3g} vs {t.threshold:.3g}, {t.dof} dof)'
             for t in d_tests
         )
-    if cfg.telemetry_velocity_error == 'auto' and prob.telemetry:
+    if cfg.telemetry_velocity_error == 'auto' and prob.telemetry and settled:
         tests = velocity_error_test(prob, out.beta, obs, cfg, t0, t1)
         switch = {t.target: True for t in tests if t.separate}
         if switch:
@@ -329,7 +338,7 @@ def _estimate_once(
     elif cfg.telemetry_velocity_error == 'separate' and prob.telemetry:
         tel_note += '; telemetry velocity error of its own (configured)'
     pruned = {tid: 0 for tid in selections}
-    if cfg.prune_z > 0.0 and cfg.knot_method == 'sparse':
+    if cfg.prune_z > 0.0 and cfg.knot_method == 'sparse' and settled:
         # knots the measurements do not support go before the knot test adds any
         reduced = prune_knots(prob, out.beta, cov, cfg.prune_z)
         if reduced:
@@ -345,7 +354,7 @@ def _estimate_once(
             r, jac, cov, cond, singular = covariance(prob, out.beta)
     added = {tid: 0 for tid in selections}
     refine_note = ''
-    for _ in range(cfg.refine_rounds):
+    for _ in range(cfg.refine_rounds if settled else 0):
         fit = float(r @ r) / max(r.size - prob.n, 1)
         if fit > REFINE_MAX_CHI2:
             # the score test assumes the model fits up to its knots; data this far off
@@ -369,6 +378,9 @@ def _estimate_once(
         iterations += it2
         halvings += h2
         r, jac, cov, cond, singular = covariance(prob, out.beta)
+        if not out.converged:
+            refine_note = '; knot test stopped: the fit on the refined knots did not converge'
+            break
     for tid, n_added in added.items():
         selections[tid] = replace(selections[tid], refined=n_added, pruned=pruned[tid])
     solve_time = _time.perf_counter() - s_start
