@@ -110,22 +110,16 @@ def test_the_term_grows_with_the_density_and_vanishes_without_it() -> None:
     assert gap_manoeuvres(rows, sp.csr_matrix(jac), cov, 0, nc, 0, segs, 0.5, 0.0) is None
 
 
-def _staging_in_a_segment(density: float, jerk_block: float = 4.0):
+def _staging_in_a_segment(density: float):
     """Robustness ascent draw 78, its window 40-95.1 s: staging at 62.46 and 65.25 s
     inside an incomplete segment (47.6-67.1 s, two CW radars) where the telemetry is out
-    (55.96-68.43 s), so no rough trajectory shows the events. ``jerk_block`` 0: one
-    white-jerk density for the whole window."""
+    (55.96-68.43 s), so no rough trajectory shows the events."""
     from orbit_tracking.core.estimation.config import EstimatorConfig
     from orbit_tracking.core.estimation.estimator import estimate
     from orbit_tracking.tools.bench.robustness_draw import _case
 
     case = _case('ascent', 78)
-    est = estimate(
-        case.obs_est,
-        40.0,
-        95.1,
-        EstimatorConfig(gap_manoeuvre_density=density, jerk_block=jerk_block),
-    )
+    est = estimate(case.obs_est, 40.0, 95.1, EstimatorConfig(gap_manoeuvre_density=density))
     sel = (case.truth_t >= 55.0) & (case.truth_t <= 65.0)
     x, cov = est.targets[0].states(case.truth_t[sel])
     e = x[:, :3] - case.truth_x[sel, :3]
@@ -133,7 +127,7 @@ def _staging_in_a_segment(density: float, jerk_block: float = 4.0):
     return est, x, maha
 
 
-@pytest.mark.timeout(480)  # three window solves of a long window
+@pytest.mark.timeout(180)
 def test_a_staging_hidden_in_a_segment_widens_the_covariance_instead_of_failing_silently() -> None:
     est, x, maha = _staging_in_a_segment(30.0)
     assert est.success, est.message
@@ -141,9 +135,5 @@ def test_a_staging_hidden_in_a_segment_widens_the_covariance_instead_of_failing_
     assert maha.max() < 5.0
     est_off, x_off, maha_off = _staging_in_a_segment(0.0)
     assert est_off.targets[0].manoeuvres is None
-    assert maha_off.max() > 5.0  # the silent failure the term removes
+    assert maha_off.max() > 8.0  # the silent failure the term removes
     np.testing.assert_array_equal(x, x_off)  # the estimate itself is not touched
-    # with one white-jerk density for the whole window (jerk_block 0) the failure is
-    # larger still: the blocks' densities widen the covariance a little, not enough
-    _, _, maha_flat = _staging_in_a_segment(0.0, jerk_block=0.0)
-    assert maha_flat.max() > 8.0

@@ -99,21 +99,15 @@ def test_significance_orders_tails_like_the_chi_square_law() -> None:
     assert 100.0 < significance(1e6, 9) < significance(2e6, 9) < np.inf
 
 
-def _staging_window(refine_events: bool, jerk_block: float = 4.0):
+def _staging_window(refine_events: bool):
     """Robustness ascent draw 45 (no telemetry, so no event detection from a rough
-    trajectory), its window 35.7-65.7 s: staging events at 37.96 and 38.26 s.
-    ``jerk_block`` 0: one white-jerk density for the whole window."""
+    trajectory), its window 35.7-65.7 s: staging events at 37.96 and 38.26 s."""
     from orbit_tracking.core.estimation.config import EstimatorConfig
     from orbit_tracking.core.estimation.estimator import estimate
     from orbit_tracking.tools.bench.robustness_draw import _case
 
     case = _case('ascent', 45)
-    est = estimate(
-        case.obs_est,
-        35.7,
-        65.7,
-        EstimatorConfig(refine_events=refine_events, jerk_block=jerk_block),
-    )
+    est = estimate(case.obs_est, 35.7, 65.7, EstimatorConfig(refine_events=refine_events))
     sel = (case.truth_t >= 36.0) & (case.truth_t <= 40.0)
     x, cov = est.targets[0].states(case.truth_t[sel])
     e = x[:, :3] - case.truth_x[sel, :3]
@@ -131,10 +125,8 @@ def _staging_window(refine_events: bool, jerk_block: float = 4.0):
 @pytest.mark.timeout(120)
 def test_events_from_the_measurements_make_a_staging_honest() -> None:
     """Without the event test the spline's single knots cannot follow two acceleration
-    jumps 0.3 s apart: with one white-jerk density for the window, states several sigma
-    off while the window claims success. With it, events go in near the true instants on
-    every axis and the states are honest. The white-jerk density per block alone (the
-    default) keeps the states honest here too, less precise than the events."""
+    jumps 0.3 s apart: states several sigma off while the window claims success. With it,
+    events go in near the true instants on every axis and the states are honest."""
     case, est, maha, rms, events = _staging_window(True)
     assert est.success, est.message
     true = np.asarray(case.draw.events)
@@ -142,13 +134,10 @@ def test_events_from_the_measurements_make_a_staging_honest() -> None:
         assert found.size >= 1
         assert np.min(np.abs(found[:, None] - true[None, :])) < 0.6, (found, true)
     assert maha.max() < 5.0
-    _, est_off, maha_off, rms_off, events_off = _staging_window(False, jerk_block=0.0)
+    _, est_off, maha_off, rms_off, events_off = _staging_window(False)
     assert all(f.size == 0 for f in events_off)
     assert maha_off.max() > 5.0  # the failure the test removes
     assert rms < 0.5 * rms_off
-    _, _, maha_blocks, rms_blocks, _ = _staging_window(False)
-    assert maha_blocks.max() < 5.0
-    assert rms < rms_blocks
 
 
 @pytest.mark.timeout(120)

@@ -188,14 +188,6 @@ class EstimatorConfig:
         telemetry outage with a turn in it) the way a Kalman smoother's motion model does.
     jerk_grid : float
         Quadrature step [s] of that integral.
-    jerk_block : float
-        Length [s] of the blocks of the window whose jerk may be larger than the
-        window's density (a staging or a turn's onset the knots do not mark): each block's
-        own density is tested against the window's by a likelihood ratio and raised where
-        the data ask for it (:mod:`~orbit_tracking.core.estimation.priors`). 0 = one
-        density for the whole window.
-    jerk_block_alpha : float
-        Significance of that test.
     gap_manoeuvre_density : float
         Density q [m^2/s^5] of the manoeuvres an incomplete segment may hide (staging, a
         turn's onset): steps of the acceleration inside every incomplete segment, a white
@@ -249,8 +241,6 @@ class EstimatorConfig:
     thrust_grid: float = 0.5
     jerk_prior: bool = True
     jerk_grid: float = 0.25
-    jerk_block: float = 4.0
-    jerk_block_alpha: float = 1e-3
     gap_manoeuvre_density: float = 30.0
     gap_manoeuvre_step: float = 0.5
     gm: float = 3.986005e14
@@ -291,12 +281,6 @@ class EstimatorConfig:
             raise ValueError('telemetry_error_spacing must be > 0')
         if not 0.0 < self.jerk_grid <= 10.0:
             raise ValueError(f'jerk_grid must lie in (0, 10] s; got {self.jerk_grid}')
-        if not (self.jerk_block == 0.0 or self.jerk_grid <= self.jerk_block <= 600.0):
-            raise ValueError(
-                f'jerk_block must be 0 or lie in [jerk_grid, 600] s; got {self.jerk_block}'
-            )
-        if not 0.0 < self.jerk_block_alpha < 1.0:
-            raise ValueError(f'jerk_block_alpha must lie in (0, 1); got {self.jerk_block_alpha}')
         if not 0.0 <= self.gap_manoeuvre_density <= 1e6:
             raise ValueError(
                 f'gap_manoeuvre_density must lie in [0, 1e6] m^2/s^5; got '

@@ -296,16 +296,7 @@ def _estimate_once(
         halvings += h2
         r, jac, cov, cond, singular = covariance(prob, out.beta)
     tel_note = ''
-    # the score tests below (delays, velocity error, knots) hold at the cost's optimum; a
-    # fit that did not reach it would have them ask for parameters at random, and each
-    # would only cost more solves that do not converge either
-    settled = out.converged
-    if not settled:
-        tel_note = (
-            '; model and knot tests skipped: the fit did not converge (they hold only at '
-            'its optimum)'
-        )
-    if cfg.telemetry_delays == 'auto' and prob.telemetry and settled:
+    if cfg.telemetry_delays == 'auto' and prob.telemetry:
         d_tests = delay_test(prob, out.beta, obs, cfg, t0, t1)
         add = {t.target: True for t in d_tests if t.delays}
         if add:
@@ -320,7 +311,7 @@ def _estimate_once(
             + f' (test {t.statistic:.3g} vs {t.threshold:.3g}, {t.dof} dof)'
             for t in d_tests
         )
-    if cfg.telemetry_velocity_error == 'auto' and prob.telemetry and settled:
+    if cfg.telemetry_velocity_error == 'auto' and prob.telemetry:
         tests = velocity_error_test(prob, out.beta, obs, cfg, t0, t1)
         switch = {t.target: True for t in tests if t.separate}
         if switch:
@@ -338,7 +329,7 @@ def _estimate_once(
     elif cfg.telemetry_velocity_error == 'separate' and prob.telemetry:
         tel_note += '; telemetry velocity error of its own (configured)'
     pruned = {tid: 0 for tid in selections}
-    if cfg.prune_z > 0.0 and cfg.knot_method == 'sparse' and settled:
+    if cfg.prune_z > 0.0 and cfg.knot_method == 'sparse':
         # knots the measurements do not support go before the knot test adds any
         reduced = prune_knots(prob, out.beta, cov, cfg.prune_z)
         if reduced:
@@ -354,7 +345,7 @@ def _estimate_once(
             r, jac, cov, cond, singular = covariance(prob, out.beta)
     added = {tid: 0 for tid in selections}
     refine_note = ''
-    for _ in range(cfg.refine_rounds if settled else 0):
+    for _ in range(cfg.refine_rounds):
         fit = float(r @ r) / max(r.size - prob.n, 1)
         if fit > REFINE_MAX_CHI2:
             # the score test assumes the model fits up to its knots; data this far off
@@ -378,9 +369,6 @@ def _estimate_once(
         iterations += it2
         halvings += h2
         r, jac, cov, cond, singular = covariance(prob, out.beta)
-        if not out.converged:
-            refine_note = '; knot test stopped: the fit on the refined knots did not converge'
-            break
     for tid, n_added in added.items():
         selections[tid] = replace(selections[tid], refined=n_added, pruned=pruned[tid])
     solve_time = _time.perf_counter() - s_start
@@ -497,7 +485,7 @@ def _estimate_once(
         if g is not None
     )
     msg += ''.join(
-        f'; target {tid} white-jerk prior {q:.3g} m^2/s^5' + _raised_blocks(prob, tid, t0, cfg)
+        f'; target {tid} white-jerk prior {q:.3g} m^2/s^5'
         for tid, q in sorted(prob.jerk_q.items())
         if q is not None
     )
@@ -730,17 +718,3 @@ def _delays(
     o = tel.delay_offset
     sig = np.sqrt(np.maximum(np.diag(cov)[o : o + 2], 0.0))
     return float(beta[o]), float(sig[0]), float(beta[o + 1]), float(sig[1])
-
-
-def _raised_blocks(prob: Problem, tid: int, t0: float, cfg: EstimatorConfig) -> str:
-    """The blocks of ``tid``'s white-jerk prior whose density the data raised, for the
-    window's message ('' when none)."""
-    scale = prob.jerk_scale.get(tid)
-    if scale is None or not np.any(scale > 1.0):
-        return ''
-    raised = np.flatnonzero(scale > 1.0)
-    spans = ', '.join(
-        f'{t0 + b * cfg.jerk_block:.1f}-{t0 + (b + 1) * cfg.jerk_block:.1f} s x{scale[b]:.3g}'
-        for b in raised
-    )
-    return f' (raised by the data in {spans})'

@@ -457,9 +457,6 @@ def rebuild(
     new = Problem(obs, sols, cfg, t0, t1, tel_axes, separate, prob.tel_events, delays)
     new.gated = prob.gated
     new.jerk_q.update({tid: q for tid, q in prob.jerk_q.items() if tid in new.jerk_q})
-    for tid, scale in prob.jerk_scale.items():  # blocks are fixed by the window's times
-        if tid in new.jerk_scale and new.jerk_scale[tid].size == scale.size:
-            new.jerk_scale[tid] = scale.copy()
     new.gate_refused = prob.gate_refused
     beta_new = np.zeros(new.n)
     for tid, (traj, coef) in sols.items():

@@ -9,6 +9,7 @@ and error model in :mod:`~orbit_tracking.core.estimation.telemetry_block`."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -20,7 +21,7 @@ from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.estimation.bspline import SplineAxis, SplineTrajectory
 from orbit_tracking.core.estimation.config import EstimatorConfig
 from orbit_tracking.core.estimation.knots import uniform_knots
-from orbit_tracking.core.estimation.motion_rows import JerkRows, jerk_rows, thrust_normal
+from orbit_tracking.core.estimation.motion_rows import jerk_rows, thrust_normal
 from orbit_tracking.core.estimation.telemetry_block import (
     VELOCITY_ERROR_PRIOR,
     TelemetryBlock,
@@ -215,16 +216,13 @@ class Problem:
                     )
                 )
         # the white-jerk prior: per target, rows M with |M c|^2 = int |p'''|^2 dt, and its
-        # density q (None until the first solve has estimated it: no rows before); each
-        # block of rows weighted by 1 / (q s) with s >= 1 its block's factor (priors.py)
-        self.jerk: dict[int, JerkRows] = {}
+        # density q (None until the first solve has estimated it: no rows before)
+        self.jerk: dict[int, FloatArray] = {}
         self.jerk_q: dict[int, float | None] = {}
-        self.jerk_scale: dict[int, FloatArray] = {}
         if cfg.jerk_prior:
             for tid, traj in self.trajs.items():
-                self.jerk[tid] = jerk_rows(traj, t0, t1, cfg.jerk_grid, cfg.jerk_block)
+                self.jerk[tid] = jerk_rows(traj, t0, t1, cfg.jerk_grid)
                 self.jerk_q[tid] = None
-                self.jerk_scale[tid] = np.ones(self.jerk[tid].n_blocks)
         # the thrust-along-velocity constraint: designs on a grid per target
         self.dynamics: list[tuple[int, sp.csr_matrix, sp.csr_matrix, sp.csr_matrix]] = []
         if cfg.thrust_along_velocity > 0.0:
@@ -254,21 +252,6 @@ class Problem:
         self.rows: list[tuple[int, FloatArray, FloatArray, FloatArray, bool]] = []
 
     # -- evaluation ------------------------------------------------------------------
-
-    def jerk_weights(self, tid: int) -> FloatArray:
-        """The weight ``1 / sqrt(q s)`` of each of target ``tid``'s white-jerk rows (its
-        density set)."""
-        jr, q = self.jerk[tid], self.jerk_q[tid]
-        assert q is not None
-        return np.asarray(1.0 / np.sqrt(q * self.jerk_scale[tid][jr.block]))
-
-    def jerk_penalty(self, tid: int) -> FloatArray | None:
-        """Target ``tid``'s white-jerk prior as a quadratic form on its coefficients
-        (None before its density is set)."""
-        if self.jerk_q[tid] is None:
-            return None
-        w = self.jerk_weights(tid)[:, None] * self.jerk[tid].rows
-        return np.asarray(w.T @ w)
 
     def predict_block(
         self, bi: int, beta: FloatArray, jacobian: bool = False
@@ -429,16 +412,15 @@ class Problem:
                 jac.append(shift_columns(jm, self.offsets[tid], self.n))
                 z = np.zeros((c.size, 3))
                 rows.append((-1, np.zeros(c.size), z, z, False))
-        for tid, jr in self.jerk.items():
-            mj = jr.rows
+        for tid, mj in self.jerk.items():
             qj = self.jerk_q[tid]
             if qj is None or not mj.shape[0]:
                 continue
-            w = self.jerk_weights(tid)[:, None] * mj
-            res.append(-(w @ self._coef(beta, tid)))
+            w = 1.0 / math.sqrt(qj)
+            res.append(-w * (mj @ self._coef(beta, tid)))
             tags.append(('jerk_prior', tid, np.ones(mj.shape[0], dtype=bool)))
             if jacobian:
-                jac.append(shift_columns(sp.csr_matrix(w), self.offsets[tid], self.n))
+                jac.append(shift_columns(sp.csr_matrix(w * mj), self.offsets[tid], self.n))
                 z = np.zeros((mj.shape[0], 3))
                 rows.append((-1, np.zeros(mj.shape[0]), z, z, False))
         if self.biases:
