@@ -322,7 +322,7 @@ class EstimatorNode(StationInputs):
             gap_manoeuvre_density=declare(
                 self,
                 'gap_manoeuvre_density',
-                30.0,
+                300.0,
                 'Density [m^2/s^5] of the manoeuvres an incomplete segment may hide (a staging '
                 'or a turn the few stations there cannot show): steps of the acceleration '
                 'inside every incomplete segment, a white jerk of this density, carried as '

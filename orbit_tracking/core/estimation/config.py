@@ -241,7 +241,7 @@ class EstimatorConfig:
     thrust_grid: float = 0.5
     jerk_prior: bool = True
     jerk_grid: float = 0.25
-    gap_manoeuvre_density: float = 30.0
+    gap_manoeuvre_density: float = 300.0
     gap_manoeuvre_step: float = 0.5
     gm: float = 3.986005e14
     segments: tuple[Segment, ...] = ()
