@@ -13,6 +13,7 @@ import pytest
 import yaml
 from test_windows import write_short_scenario
 
+from orbit_tracking.core.estimation.config import EstimatorConfig
 from orbit_tracking.core.estimation.windows import TRAJECTORY_CSV_COLUMNS, read_trajectory_csv
 from orbit_tracking.core.metrics import hermite_states
 from orbit_tracking.core.sim.scenario import load_scenario
@@ -232,6 +233,26 @@ def test_estimator_parameter_file_sets_every_declared_parameter():
     finally:
         rclpy.try_shutdown()
     assert declared == params
+
+
+def test_the_nodes_defaults_are_the_cores():
+    """Every default is written twice (EstimatorConfig and the node's declaration, then the
+    YAML file and NODES.md): the node started without a parameter file runs exactly the
+    core's default configuration, so the offline tools and the benchmarks measure it."""
+    import rclpy
+
+    from orbit_tracking.ros.estimator_node import EstimatorNode
+
+    rclpy.init(args=[])
+    try:
+        node = EstimatorNode()
+        try:
+            got = node.est_cfg
+        finally:
+            node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+    assert got == EstimatorConfig()
 
 
 # -- the node over DDS ------------------------------------------------------------------------
