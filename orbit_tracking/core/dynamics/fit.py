@@ -1,0 +1,453 @@
+"""A trajectory model with dynamics fitted to the raw measurements of every station,
+jointly with the stations' systematic errors (seed 003, issue 15).
+
+The unknowns are each target's model parameters (:class:`~.rocket.RocketModel`: state at
+the epoch, exhaust speed, mass time) and the declared biases. The cost is the whitened
+misfit of every measured value (``(measured - h(x(t; theta)) - bias terms) / sigma``, the
+models of :mod:`~orbit_tracking.core.models.measurements` and
+:mod:`~orbit_tracking.core.models.systematic`) plus each estimated bias's prior row.
+
+It is minimised by Levenberg-Marquardt (Marquardt's damping on the Jacobi-scaled normal
+matrix, the cost of a trial step from a propagation without sensitivities). The solve
+**converged** when the full Gauss-Newton step would lower the cost by at most
+``convergence_decrement`` (the same test as the spline estimator's, which a stalled step
+cannot pass). Values beyond ``gate_sigma`` are then rejected and the fit repeated, a few
+passes. Success is the one verdict of :func:`~orbit_tracking.core.estimation.verdict.judge`
+(converged, chi-square per degree of freedom consistent, not singular, the gate not
+refusing); the covariance is the inverse normal matrix, scaled as the verdict says.
+"""
+
+from __future__ import annotations
+
+import math
+import time as _time
+from collections import Counter
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from orbit_tracking.core.data.observations import Observations
+from orbit_tracking.core.dynamics.rocket import Flight, FlightError, RocketModel
+from orbit_tracking.core.errors import OrbitTrackingError
+from orbit_tracking.core.estimation.verdict import judge
+from orbit_tracking.core.models.measurements import StationPose, predict, residual
+from orbit_tracking.core.models.systematic import CLOCK, BiasModel, BiasParameter
+
+__all__ = ['DynamicsFit', 'FitConfig', 'TargetFlight', 'fit_dynamics']
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """Settings of :func:`fit_dynamics` (the thresholds mean what the spline estimator's
+    of the same name mean: :class:`~orbit_tracking.core.estimation.config.EstimatorConfig`).
+    """
+
+    max_iterations: int = 100
+    convergence_decrement: float = 1e-4
+    max_unconverged_decrement: float = 4.0
+    gate_sigma: float = 5.0
+    gate_passes: int = 4
+    max_gate_share: float = 0.05
+    max_chi2_dof: float = 1.5
+
+    def __post_init__(self) -> None:
+        if self.max_iterations < 1 or self.gate_passes < 1:
+            raise ValueError('max_iterations and gate_passes must be >= 1')
+        if not self.convergence_decrement > 0.0:
+            raise ValueError(
+                f'convergence_decrement must be > 0; got {self.convergence_decrement}'
+            )
+        if not self.gate_sigma > 0.0:
+            raise ValueError(f'gate_sigma must be > 0; got {self.gate_sigma}')
+
+
+@dataclass(frozen=True)
+class TargetFlight:
+    """The fitted flight of one target: parameters, their covariance (marginal, every
+    other unknown estimated too) and states with covariance anywhere in ``[t0, t1]``."""
+
+    target_id: int
+    model: RocketModel
+    theta: FloatArray
+    covariance: FloatArray
+    t0: float
+    t1: float
+
+    def states(self, t: Sequence[float] | FloatArray) -> tuple[FloatArray, FloatArray]:
+        """World-frame (position, velocity) (m, 6) and their covariance (m, 6, 6)."""
+        f = self.model.propagate(self.theta, np.asarray(t, dtype=np.float64))
+        assert f.sensitivity is not None
+        g = f.sensitivity
+        cov = np.einsum('mik,kl,mjl->mij', g, self.covariance, g)
+        return f.state, 0.5 * (cov + np.transpose(cov, (0, 2, 1)))
+
+    def thrust(self, t: Sequence[float] | FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Thrust acceleration magnitude [m/s^2] and its sigma at ``t``, shape (m,) each."""
+        tt = np.asarray(t, dtype=np.float64)
+        c, tau = float(self.theta[6]), float(self.theta[7])
+        s = tau - (tt - self.model.epoch)
+        g = np.stack([1.0 / s, -c / s**2], axis=1)
+        var = np.einsum('mi,ij,mj->m', g, self.covariance[6:, 6:], g)
+        return c / s, np.sqrt(np.maximum(var, 0.0))
+
+
+@dataclass(frozen=True)
+class DynamicsFit:
+    """Outcome of :func:`fit_dynamics`, the way ``scipy.optimize`` reports.
+
+    ``names`` label the rows and columns of ``covariance`` (``<target>/<parameter>`` and
+    ``<station>/<bias>``); ``information`` is the normal matrix of the measurements alone
+    (without the bias priors), for the observability analysis. ``residuals`` maps each
+    station to (time (n,), fields, whitened residual (n, k), target id (n,)); NaN where a
+    value was not measured or was rejected.
+    """
+
+    success: bool
+    message: str
+    targets: Mapping[int, TargetFlight]
+    biases: tuple[BiasParameter, ...]
+    bias_values: FloatArray
+    iterations: int
+    cost: float
+    chi2_dof: float
+    dof: int
+    decrement: float
+    covariance: FloatArray
+    covariance_scale: float
+    information: FloatArray
+    names: tuple[str, ...]
+    used: Counter[str]
+    rejected: Counter[tuple[str, str]]
+    residuals: Mapping[str, tuple[FloatArray, tuple[str, ...], FloatArray, FloatArray]]
+    solve_time: float
+    prior_sigma: FloatArray = field(default_factory=lambda: np.zeros(0))
+
+
+@dataclass
+class _Group:
+    """The rows of one station about one target."""
+
+    station: str
+    target: int
+    fields: tuple[str, ...]
+    time: FloatArray
+    values: FloatArray
+    sigmas: FloatArray
+    pose: StationPose
+    keep: NDArray[np.bool_]  # (n, k): measured and not rejected
+
+
+class _Problem:
+    """Parameter vector ``[theta of each target..., estimated biases...]``."""
+
+    def __init__(
+        self,
+        obs: Observations,
+        models: Mapping[int, RocketModel],
+        biases: Sequence[BiasParameter],
+    ) -> None:
+        self.models = dict(models)
+        self.tids = sorted(models)
+        clocks = [b for b in biases if b.name == CLOCK]
+        if clocks:
+            raise OrbitTrackingError(
+                'the dynamics models do not estimate clock offsets; declare them known or '
+                f'leave them out ({", ".join(b.station for b in clocks)})'
+            )
+        self.biases = tuple(biases)
+        self.free = [i for i, b in enumerate(self.biases) if b.estimate]
+        self.n_traj = 8 * len(self.tids)
+        self.n = self.n_traj + len(self.free)
+        self.groups: list[_Group] = []
+        for st in obs.stations:
+            tab = st.table
+            for tid in self.tids:
+                sel = tab.target_id == tid
+                if not np.any(sel):
+                    continue
+                vals = tab.values[sel]
+                sig = tab.sigmas[sel]
+                keep = np.isfinite(vals) & np.isfinite(sig) & (sig > 0)
+                self.groups.append(
+                    _Group(
+                        tab.station_id,
+                        tid,
+                        tuple(tab.fields),
+                        tab.time[sel],
+                        vals,
+                        sig,
+                        st.pose.take(np.flatnonzero(sel)),
+                        keep,
+                    )
+                )
+        self.times = {
+            tid: np.unique(np.concatenate([g.time for g in self.groups if g.target == tid]))
+            for tid in self.tids
+            if any(g.target == tid for g in self.groups)
+        }
+        if set(self.times) != set(self.tids):
+            missing = sorted(set(self.tids) - set(self.times))
+            raise OrbitTrackingError(f'no measurement of target(s) {missing}')
+
+    def bias_models(self, beta: FloatArray) -> dict[str, BiasModel]:
+        vals: dict[str, dict[str, float]] = {}
+        free = dict(zip(self.free, beta[self.n_traj :], strict=True))
+        for i, b in enumerate(self.biases):
+            vals.setdefault(b.station, {})[b.name] = float(free.get(i, b.prior))
+        return {s: BiasModel(v) for s, v in vals.items()}
+
+    def bias_values(self, beta: FloatArray) -> FloatArray:
+        free = dict(zip(self.free, beta[self.n_traj :], strict=True))
+        return np.array([free.get(i, b.prior) for i, b in enumerate(self.biases)])
+
+    def flights(self, beta: FloatArray, jacobian: bool) -> dict[int, Flight]:
+        return {
+            tid: self.models[tid].propagate(beta[8 * k : 8 * k + 8], self.times[tid], jacobian)
+            for k, tid in enumerate(self.tids)
+        }
+
+    def evaluate(
+        self, beta: FloatArray, jacobian: bool
+    ) -> tuple[list[FloatArray], FloatArray | None]:
+        """Whitened residual (n, k) per group (NaN where not kept), and the Jacobian of the
+        residual vector (kept values, then the bias prior rows: :meth:`vector`)."""
+        fl = self.flights(beta, jacobian)
+        bm = self.bias_models(beta)
+        res: list[FloatArray] = []
+        blocks: list[FloatArray] = []
+        for g in self.groups:
+            f = fl[g.target]
+            idx = np.searchsorted(self.times[g.target], g.time)
+            x = f.state[idx]
+            h, dh = predict(g.fields, x, g.pose, jacobian=jacobian)
+            model = bm.get(g.station, BiasModel())
+            pred = model.apply(g.fields, h)
+            r = residual(g.fields, g.values, pred) / g.sigmas
+            r[~g.keep] = np.nan
+            res.append(r)
+            if not jacobian:
+                continue
+            assert dh is not None and f.sensitivity is not None
+            names = [self.biases[i].name for i in self.free if self.biases[i].station == g.station]
+            cols = [
+                self.n_traj + j
+                for j, i in enumerate(self.free)
+                if self.biases[i].station == g.station
+            ]
+            d_true, d_param = model.jacobian(g.fields, h, names)
+            k = self.tids.index(g.target)
+            jx = np.einsum('mab,mbc,mcp->map', d_true, dh, f.sensitivity[idx])  # (m, k, 8)
+            blk = np.zeros((g.time.size, len(g.fields), self.n))
+            blk[:, :, 8 * k : 8 * k + 8] = jx
+            if cols:
+                blk[:, :, cols] = d_param
+            blk /= -g.sigmas[:, :, None]  # the derivative of the residual, not of h
+            blocks.append(blk[g.keep])
+        if not jacobian:
+            return res, None
+        prior = np.zeros((len(self.free), self.n))
+        for j, i in enumerate(self.free):
+            prior[j, self.n_traj + j] = 1.0 / self.biases[i].sigma
+        return res, np.vstack([*blocks, prior])
+
+    def vector(self, res: Sequence[FloatArray], beta: FloatArray) -> FloatArray:
+        data = [r[g.keep] for r, g in zip(res, self.groups, strict=True)]
+        pri = [
+            (beta[self.n_traj + j] - self.biases[i].prior) / self.biases[i].sigma
+            for j, i in enumerate(self.free)
+        ]
+        return np.concatenate([*data, np.asarray(pri, dtype=np.float64)])
+
+    def cost(self, beta: FloatArray) -> float:
+        try:
+            res, _ = self.evaluate(beta, False)
+        except FlightError:
+            return math.inf
+        v = self.vector(res, beta)
+        return float(v @ v) if np.all(np.isfinite(v)) else math.inf
+
+    @property
+    def n_rows(self) -> int:
+        return int(sum(int(g.keep.sum()) for g in self.groups))
+
+
+_LAMBDAS = (1e-6, 1e-5, 1e-4, 1e-3, 1e-2, 1e-1, 1.0, 10.0, 1e2, 1e3, 1e4, 1e5, 1e6)
+
+
+def _solve(
+    prob: _Problem, beta: FloatArray, cfg: FitConfig
+) -> tuple[FloatArray, int, bool, float, FloatArray, FloatArray, list[FloatArray]]:
+    """Levenberg-Marquardt from ``beta``: (beta, iterations, converged, decrement, normal
+    matrix, gradient, residuals)."""
+    lam = 0.0
+    it = 0
+    while True:
+        res, jac = prob.evaluate(beta, True)
+        assert jac is not None
+        r = prob.vector(res, beta)
+        cost = float(r @ r)
+        n = jac.T @ jac
+        g = jac.T @ r
+        d = np.sqrt(np.maximum(np.diag(n), 1e-300))
+        ns = n / np.outer(d, d)
+        gs = g / d
+        try:
+            step_s = -np.linalg.solve(ns, gs)
+        except np.linalg.LinAlgError:
+            step_s = -np.linalg.lstsq(ns, gs, rcond=None)[0]
+        decrement = float(-gs @ step_s)
+        if decrement <= cfg.convergence_decrement or it >= cfg.max_iterations:
+            return beta, it, decrement <= cfg.convergence_decrement, decrement, n, g, res
+        it += 1
+        start = 0 if lam == 0.0 else _LAMBDAS.index(lam) + 1
+        accepted = False
+        for lam_try in (0.0, *_LAMBDAS)[start:]:
+            if lam_try == 0.0:
+                s = step_s
+            else:
+                s = -np.linalg.solve(ns + lam_try * np.eye(prob.n), gs)
+            trial = beta + s / d
+            c_new = prob.cost(trial)
+            if c_new < cost:
+                beta = trial
+                lam = 0.0 if lam_try <= _LAMBDAS[0] else _LAMBDAS[_LAMBDAS.index(lam_try) - 1]
+                accepted = True
+                break
+        if not accepted:  # no step lowers the cost: judged by its decrement
+            return beta, it, False, decrement, n, g, res
+
+
+def fit_dynamics(
+    obs: Observations,
+    initial: Mapping[int, tuple[RocketModel, FloatArray]],
+    biases: Sequence[BiasParameter] = (),
+    config: FitConfig | None = None,
+) -> DynamicsFit:
+    """Fit each target's flight model, and the biases, to the raw measurements.
+
+    Parameters
+    ----------
+    obs : Observations
+        Station rows (their target ids pick the target); telemetry and fixes are not used.
+    initial : mapping of target id to (model, theta (8,))
+        The model of each target and its starting parameters.
+    biases : sequence of BiasParameter
+        Declared systematic errors (``estimate=False`` holds one at its prior).
+    config : FitConfig, optional
+
+    Returns
+    -------
+    DynamicsFit
+    """
+    cfg = config or FitConfig()
+    t_start = _time.perf_counter()
+    prob = _Problem(obs, {k: m for k, (m, _) in initial.items()}, biases)
+    beta = np.concatenate(
+        [np.asarray(initial[t][1], dtype=np.float64) for t in prob.tids]
+        + [np.array([prob.biases[i].prior for i in prob.free])]
+    )
+    rejected: Counter[tuple[str, str]] = Counter()
+    iterations = 0
+    if prob.free:  # the flights first, the biases held: they can trade against a poor start
+        held = _Problem(obs, prob.models, [replace(b, estimate=False) for b in prob.biases])
+        first = _solve(held, beta[: prob.n_traj], cfg)
+        iterations += first[1]
+        beta[: prob.n_traj] = first[0]
+    refused = 0.0
+    for _ in range(cfg.gate_passes):
+        beta, its, converged, decrement, n, _g, res = _solve(prob, beta, cfg)
+        iterations += its
+        if decrement > cfg.max_unconverged_decrement:
+            break  # far from any optimum: its residuals say nothing about outliers
+        changed = False
+        for r, g in zip(res, prob.groups, strict=True):
+            bad = g.keep & (np.abs(np.nan_to_num(r, nan=0.0)) > cfg.gate_sigma)
+            if np.any(bad):
+                g.keep &= ~bad
+                changed = True
+        if not changed:
+            break
+    for g in prob.groups:
+        for j in range(len(g.fields)):
+            measured = np.isfinite(g.values[:, j])
+            out = int(np.sum(measured & ~g.keep[:, j]))
+            if out:
+                rejected[(g.station, 'residual_gate')] += out
+                refused = max(refused, out / max(int(measured.sum()), 1))
+    gate_refused = refused if refused > cfg.max_gate_share else 0.0
+    rows = prob.n_rows
+    r = prob.vector(res, beta)
+    cost = float(r @ r)
+    dof = rows - prob.n_traj - 0  # the bias prior rows and columns cancel
+    chi2_dof = cost / max(dof, 1)
+    prior_info = np.zeros(prob.n)
+    prior_info[prob.n_traj :] = [1.0 / prob.biases[i].sigma ** 2 for i in prob.free]
+    d = np.sqrt(np.maximum(np.diag(n), 1e-300))
+    try:  # inverted Jacobi-scaled: the units of the parameters differ by many decades
+        cov = np.linalg.inv(n / np.outer(d, d)) / np.outer(d, d)
+        singular = not np.all(np.isfinite(cov)) or np.linalg.cond(n / np.outer(d, d)) > 1e13
+    except np.linalg.LinAlgError:
+        cov, singular = np.full_like(n, np.nan), True
+    verdict = judge(
+        converged,
+        chi2_dof,
+        dof,
+        cfg.max_chi2_dof,
+        singular=singular,
+        gate_refused=gate_refused,
+        finite=bool(np.all(np.isfinite(beta))),
+        decrement=decrement,
+        max_decrement=cfg.max_unconverged_decrement,
+    )
+    cov = cov * verdict.covariance_scale
+    names = tuple(f'{t}/{p}' for t in prob.tids for p in prob.models[t].names) + tuple(
+        f'{prob.biases[i].station}/{prob.biases[i].name}' for i in prob.free
+    )
+    targets = {}
+    for k, tid in enumerate(prob.tids):
+        sl = slice(8 * k, 8 * k + 8)
+        tt = prob.times[tid]
+        targets[tid] = TargetFlight(
+            tid, prob.models[tid], beta[sl].copy(), cov[sl, sl].copy(), float(tt[0]), float(tt[-1])
+        )
+    used: Counter[str] = Counter()
+    resid: dict[str, tuple[FloatArray, tuple[str, ...], FloatArray, FloatArray]] = {}
+    for rr, g in zip(res, prob.groups, strict=True):
+        used[g.station] += int(g.keep.sum())
+        prev = resid.get(g.station)
+        ids = np.full(g.time.size, float(g.target))
+        if prev is None:
+            resid[g.station] = (g.time, g.fields, rr, ids)
+        else:
+            resid[g.station] = (
+                np.concatenate([prev[0], g.time]),
+                g.fields,
+                np.vstack([prev[2], rr]),
+                np.concatenate([prev[3], ids]),
+            )
+    message = 'converged' if verdict.success else '; '.join(verdict.reasons)
+    return DynamicsFit(
+        success=verdict.success,
+        message=message,
+        targets=targets,
+        biases=prob.biases,
+        bias_values=prob.bias_values(beta),
+        iterations=iterations,
+        cost=cost,
+        chi2_dof=chi2_dof,
+        dof=dof,
+        decrement=decrement,
+        covariance=cov,
+        covariance_scale=verdict.covariance_scale,
+        information=n - np.diag(prior_info),
+        names=names,
+        used=used,
+        rejected=rejected,
+        residuals=resid,
+        solve_time=_time.perf_counter() - t_start,
+        prior_sigma=np.array([prob.biases[i].sigma for i in prob.free]),
+    )

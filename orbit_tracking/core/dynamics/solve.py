@@ -1,0 +1,127 @@
+"""One call from observations to a fitted rocket flight (what the offline tool, the
+benchmark and the estimator node call): starting points for every target, the fit from
+each, the best kept (seed 003, issue 15)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from orbit_tracking.core import frames
+from orbit_tracking.core.data.observations import Observations
+from orbit_tracking.core.dynamics.fit import DynamicsFit, FitConfig, fit_dynamics
+from orbit_tracking.core.dynamics.rocket import FlightError, RocketModel
+from orbit_tracking.core.dynamics.start import start_candidates, start_from_fixes
+from orbit_tracking.core.errors import OrbitTrackingError
+from orbit_tracking.core.models.systematic import BiasParameter
+
+__all__ = ['RocketConfig', 'fit_rocket']
+
+FloatArray = NDArray[np.float64]
+
+SCOUT_ITERATIONS = 12
+"""Levenberg-Marquardt steps each start of a search gets before the best goes on."""
+
+EARTH_RATE = 7.2921150e-5
+"""The Earth's rotation rate [rad/s] (for the rotating ``earth`` world frame)."""
+
+
+@dataclass(frozen=True)
+class RocketConfig:
+    """Settings of :func:`fit_rocket`.
+
+    Attributes
+    ----------
+    gm, j2 : float
+        Gravity model (point mass; J2 0 to leave it out).
+    rotating : bool
+        The world frame turns with the Earth (``earth``): Coriolis and centrifugal terms.
+    min_altitude, max_altitude : float
+        The altitude band [m] the range hypotheses of a single station's start search.
+    fit : FitConfig
+    """
+
+    gm: float = frames.WGS84_GM
+    j2: float = 0.0
+    rotating: bool = False
+    min_altitude: float = 0.0
+    max_altitude: float = 1.5e6
+    fit: FitConfig = FitConfig()
+
+    def model(self, epoch: float) -> RocketModel:
+        return RocketModel(
+            epoch, self.gm, self.j2, frames.WGS84_A, EARTH_RATE if self.rotating else 0.0
+        )
+
+
+def _starts(
+    obs: Observations, tid: int, cfg: RocketConfig
+) -> list[tuple[RocketModel, FloatArray]]:
+    times = [s.table.time[s.table.target_id == tid] for s in obs.stations]
+    times = [t for t in times if t.size]
+    if not times:
+        raise OrbitTrackingError(f'target {tid}: no station measures it')
+    model = cfg.model(float(min(t.min() for t in times)))
+    fixes = obs.fixes.get(tid)
+    if fixes is not None and len(fixes) >= 6:
+        return [(model, start_from_fixes(fixes, model))]
+    # no fixes: the station with the most rows about this target, angles only
+    st = max(obs.stations, key=lambda s: int(np.sum(s.table.target_id == tid)))
+    return [
+        (model, th) for th in start_candidates(st, tid, model, cfg.min_altitude, cfg.max_altitude)
+    ]
+
+
+def fit_rocket(
+    obs: Observations,
+    target_ids: Sequence[int] | None = None,
+    biases: Sequence[BiasParameter] = (),
+    config: RocketConfig | None = None,
+) -> DynamicsFit:
+    """Fit the rocket model of every target (jointly, sharing the biases).
+
+    Each target starts from its fixes (``obs.fixes``) when it has some, else from the
+    range-hypothesis search on the angles of the station that sees it most
+    (:func:`~.start.start_candidates`). With several starts each is fitted a few steps
+    (:data:`SCOUT_ITERATIONS`, biases held) and the fit goes on from the one of lowest cost.
+
+    Raises
+    ------
+    OrbitTrackingError
+        No target, no usable start, or no start could be flown.
+    """
+    cfg = config or RocketConfig()
+    ids = sorted(target_ids) if target_ids is not None else obs.target_ids
+    ids = [t for t in ids if any(np.any(s.table.target_id == t) for s in obs.stations)]
+    if not ids:
+        raise OrbitTrackingError('no station measurement of any target to fit')
+    starts = {tid: _starts(obs, tid, cfg) for tid in ids}
+    n_alt = max(len(v) for v in starts.values())
+    errors = []
+    if n_alt > 1:  # scout every start a few steps, biases held; go on from the best
+        scout = replace(cfg.fit, max_iterations=SCOUT_ITERATIONS, gate_passes=1)
+        held = [replace(b, estimate=False) for b in biases]
+        best_cost, best_start = math.inf, None
+        for k in range(n_alt):
+            initial = {tid: s[min(k, len(s) - 1)] for tid, s in starts.items()}
+            try:
+                trial = fit_dynamics(obs, initial, held, scout)
+            except FlightError as exc:
+                errors.append(str(exc))
+                continue
+            if trial.cost < best_cost:
+                best_cost = trial.cost
+                best_start = {t: (m, trial.targets[t].theta) for t, (m, _) in initial.items()}
+        if best_start is None:
+            raise OrbitTrackingError('no start could be flown: ' + '; '.join(errors))
+        first = best_start
+    else:
+        first = {tid: s[0] for tid, s in starts.items()}
+    try:
+        return fit_dynamics(obs, first, biases, cfg.fit)
+    except FlightError as exc:
+        raise OrbitTrackingError(f'the rocket fit failed: {exc}') from exc
