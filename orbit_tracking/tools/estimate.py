@@ -35,6 +35,7 @@ from orbit_tracking.core.estimation.windows import (
     stitch,
     write_trajectory_csv,
 )
+from orbit_tracking.core.models.systematic import BiasParameter
 from orbit_tracking.core.triangulation.intersection import Gates
 from orbit_tracking.core.triangulation.pipeline import TimedFix, TriangulationPipeline, fix_series
 from orbit_tracking.ros import qos
@@ -59,7 +60,15 @@ from orbit_tracking.tools.evaluation import (
     final_biases,
 )
 
-__all__ = ['EstimationReport', 'estimate_bag', 'estimator_configs']
+__all__ = [
+    'EstimationReport',
+    'estimate_bag',
+    'estimator_configs',
+    'resolve_declaration',
+    'triangulated_fixes',
+    'trajectory_messages',
+    'write_output_bag',
+]
 
 
 @dataclass
@@ -121,7 +130,62 @@ class EstimationReport:
         return out
 
 
-def _triangulated_fixes(
+def resolve_declaration(
+    decl: BiasDeclaration | None, obs: Observations
+) -> tuple[tuple[BiasParameter, ...], list[str]]:
+    """The biases a declaration gives for the stations and fields of ``obs``, and the notes
+    on what it could not apply (a station without measurements, a field it does not
+    measure)."""
+    if decl is None or decl.empty:
+        return (), []
+    fields = station_fields(obs)
+    declared, notes = decl.resolve(fields)
+    notes += [
+        f'bias declaration names station {sid}, which has no measurements in the bag'
+        for sid in decl.stations
+        if sid not in fields
+    ]
+    return tuple(declared), notes
+
+
+Track = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+def trajectory_messages(
+    tracks: Mapping[int, Track], main: int, frame: str, tb: TimeBase
+) -> list[tuple[int, str, object]]:
+    """``trajectory/states`` (the ``main`` target, ``child_frame_id`` ``target``) and
+    ``trajectory/target_<id>/states`` Odometry messages of stitched tracks
+    ``{id: (times, x (m, 6), cov (m, 6, 6))}``, as ``(stamp ns, topic, message)``."""
+    msgs: list[tuple[int, str, object]] = []
+    for tid, (tt, x, cov) in tracks.items():
+        topic = 'trajectory/states' if tid == main else f'trajectory/target_{tid}/states'
+        for i in range(tt.size):
+            msg = target_state_to_odometry(
+                tid, frame, tt[i], x[i, :3], x[i, 3:], cov[i, :3, :3], cov[i, 3:, 3:], tb
+            )
+            if tid == main:
+                msg.child_frame_id = 'target'
+            msgs.append((tb.to_ns(tt[i]), topic, msg))
+    return msgs
+
+
+def write_output_bag(bag_out: Path, msgs: list[tuple[int, str, object]]) -> Path:
+    """Write the messages (any order) into a new bag at ``bag_out`` (replacing one)."""
+    if bag_out.exists():
+        import shutil
+
+        shutil.rmtree(bag_out)
+    msgs.sort(key=lambda r: r[0])
+    with BagWriter(bag_out) as w:
+        for t_ns, topic, msg in msgs:
+            w.write(
+                topic, msg, t_ns, qos.LATCHED if topic == 'trajectory/biases' else qos.STATE_STREAM
+            )
+    return bag_out
+
+
+def triangulated_fixes(
     bag: str | Path, ctx: BagContext, progress: bool, gates: Gates | None = None
 ) -> list[TimedFix]:
     """Fixes of the bag's lines of sight (the rough trajectory when the bag has neither
@@ -274,15 +338,8 @@ def estimate_bag(
     if buf.withheld:
         counts['no_station_state'] += sum(buf.withheld.values())
     counts.update(buf.counts)
-    bias_notes: list[str] = []
-    if decl is not None and not decl.empty:
-        fields = station_fields(obs)
-        declared, bias_notes = decl.resolve(fields)
-        bias_notes += [
-            f'bias declaration names station {sid}, which has no measurements in the bag'
-            for sid in decl.stations
-            if sid not in fields
-        ]
+    declared, bias_notes = resolve_declaration(decl, obs)
+    if declared:
         est_cfg = replace(est_cfg, biases=declared)
     if obs.telemetry:
         rough = 'telemetry'
@@ -291,7 +348,7 @@ def estimate_bag(
     else:
         # biased lines of sight miss each other: keep them for the biases to explain
         gates = Gates(miss_probability=1.0) if est_cfg.biases else None
-        fixes = _triangulated_fixes(bag, ctx, progress, gates)
+        fixes = triangulated_fixes(bag, ctx, progress, gates)
         obs = Observations(obs.stations, {}, fix_series(fixes))
         rough = f'{len(fixes)} fixes triangulated from the bag' + (
             ' (miss-distance gate off: biases declared)' if gates else ''
@@ -339,16 +396,7 @@ def estimate_bag(
     files.append(out / 'biases_by_window.csv')
     write_biases_by_window_csv(files[-1], [(e.t0, e.t1, e.biases) for e in estimates], tb.ref_ns)
     frame = ctx.world_frame or 'earth'
-    msgs: list[tuple[int, str, object]] = []
-    for tid, (tt, x, cov) in tracks.items():
-        topic = 'trajectory/states' if tid == main else f'trajectory/target_{tid}/states'
-        for i in range(tt.size):
-            msg = target_state_to_odometry(
-                tid, frame, tt[i], x[i, :3], x[i, 3:], cov[i, :3, :3], cov[i, 3:, 3:], tb
-            )
-            if tid == main:
-                msg.child_frame_id = 'target'
-            msgs.append((tb.to_ns(tt[i]), topic, msg))
+    msgs = trajectory_messages(tracks, main, frame, tb)
     for e in estimates:
         if not e.success:  # withheld, as the node withholds it (its states may not be finite)
             continue
@@ -379,18 +427,7 @@ def estimate_bag(
                     biases_to_diagnostics(e.biases, e.t0, e.t1, tb),
                 )
             )
-    bag_out = out / 'bag'
-    if bag_out.exists():
-        import shutil
-
-        shutil.rmtree(bag_out)
-    msgs.sort(key=lambda r: r[0])
-    with BagWriter(bag_out) as w:
-        for t_ns, topic, msg in msgs:
-            w.write(
-                topic, msg, t_ns, qos.LATCHED if topic == 'trajectory/biases' else qos.STATE_STREAM
-            )
-    files.append(bag_out)
+    files.append(write_output_bag(out / 'bag', msgs))
     t_main, x_main, c_main = tracks[main]
     report = EstimationReport(
         estimates,

@@ -12,9 +12,12 @@ matrix, the cost of a trial step from a propagation without sensitivities). The 
 **converged** when the full Gauss-Newton step would lower the cost by at most
 ``convergence_decrement`` (the same test as the spline estimator's, which a stalled step
 cannot pass). Values beyond ``gate_sigma`` are then rejected and the fit repeated, a few
-passes. Success is the one verdict of :func:`~orbit_tracking.core.estimation.verdict.judge`
-(converged, chi-square per degree of freedom consistent, not singular, the gate not
-refusing); the covariance is the inverse normal matrix, scaled as the verdict says.
+passes, unless a pass would reject more than ``max_gate_share`` of one station's field for
+one target: then they are not outliers, the model does not fit the data, and the gate
+refuses (the fit is not a success). Success is the one verdict of
+:func:`~orbit_tracking.core.estimation.verdict.judge` (converged, chi-square per degree
+of freedom consistent, not singular, the gate not refusing); the covariance is the
+inverse normal matrix, scaled as the verdict says.
 """
 
 from __future__ import annotations
@@ -35,7 +38,7 @@ from orbit_tracking.core.estimation.verdict import judge
 from orbit_tracking.core.models.measurements import StationPose, predict, residual
 from orbit_tracking.core.models.systematic import CLOCK, BiasModel, BiasParameter
 
-__all__ = ['DynamicsFit', 'FitConfig', 'TargetFlight', 'fit_dynamics']
+__all__ = ['DynamicsFit', 'FitConfig', 'TargetFlight', 'bound_at', 'fit_dynamics']
 
 FloatArray = NDArray[np.float64]
 
@@ -363,22 +366,26 @@ def fit_dynamics(
         iterations += its
         if decrement > cfg.max_unconverged_decrement:
             break  # far from any optimum: its residuals say nothing about outliers
-        changed = False
-        for r, g in zip(res, prob.groups, strict=True):
-            bad = g.keep & (np.abs(np.nan_to_num(r, nan=0.0)) > cfg.gate_sigma)
-            if np.any(bad):
-                g.keep &= ~bad
-                changed = True
-        if not changed:
+        bad = [
+            g.keep & (np.abs(np.nan_to_num(r, nan=0.0)) > cfg.gate_sigma)
+            for r, g in zip(res, prob.groups, strict=True)
+        ]
+        share = max(
+            float(np.max(b.sum(axis=0) / np.maximum(np.isfinite(g.values).sum(axis=0), 1)))
+            for b, g in zip(bad, prob.groups, strict=True)
+        )
+        if share > cfg.max_gate_share:  # not outliers: the model does not fit the data
+            refused = share
             break
+        if not any(np.any(b) for b in bad):
+            break
+        for b, g in zip(bad, prob.groups, strict=True):
+            g.keep &= ~b
     for g in prob.groups:
-        for j in range(len(g.fields)):
-            measured = np.isfinite(g.values[:, j])
-            out = int(np.sum(measured & ~g.keep[:, j]))
-            if out:
-                rejected[(g.station, 'residual_gate')] += out
-                refused = max(refused, out / max(int(measured.sum()), 1))
-    gate_refused = refused if refused > cfg.max_gate_share else 0.0
+        out = int(np.sum(np.isfinite(g.values) & ~g.keep))
+        if out:
+            rejected[(g.station, 'residual_gate')] += out
+    gate_refused = refused
     rows = prob.n_rows
     r = prob.vector(res, beta)
     cost = float(r @ r)
@@ -451,3 +458,32 @@ def fit_dynamics(
         solve_time=_time.perf_counter() - t_start,
         prior_sigma=np.array([prob.biases[i].sigma for i in prob.free]),
     )
+
+
+def bound_at(
+    obs: Observations,
+    truth: Mapping[int, tuple[RocketModel, FloatArray]],
+    biases: Sequence[BiasParameter] = (),
+) -> dict[int, TargetFlight]:
+    """The Cramer-Rao bound of the model at the true parameters (``truth``; the biases at
+    their ``prior``): each target's flight at the truth with the inverse information
+    (measurements and bias priors, every row kept) as its covariance, so that
+    :meth:`TargetFlight.states` gives the bound of the states."""
+    prob = _Problem(obs, {k: m for k, (m, _) in truth.items()}, biases)
+    beta = np.concatenate(
+        [np.asarray(truth[t][1], dtype=np.float64) for t in prob.tids]
+        + [np.array([prob.biases[i].prior for i in prob.free])]
+    )
+    _, jac = prob.evaluate(beta, True)
+    assert jac is not None
+    n = jac.T @ jac
+    d = np.sqrt(np.maximum(np.diag(n), 1e-300))
+    cov = np.linalg.pinv(n / np.outer(d, d), rcond=1e-14, hermitian=True) / np.outer(d, d)
+    out = {}
+    for k, tid in enumerate(prob.tids):
+        sl = slice(8 * k, 8 * k + 8)
+        tt = prob.times[tid]
+        out[tid] = TargetFlight(
+            tid, prob.models[tid], beta[sl], cov[sl, sl], float(tt[0]), float(tt[-1])
+        )
+    return out

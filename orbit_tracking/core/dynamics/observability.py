@@ -85,7 +85,10 @@ def data_bounds(information: FloatArray) -> FloatArray:
 
 def classify(fit: DynamicsFit) -> list[ParameterObservability]:
     """Every parameter of ``fit`` with its class (module docstring)."""
-    bound = data_bounds(fit.information)
+    if not np.all(np.isfinite(fit.information)):
+        bound = np.full(len(fit.names), math.inf)
+    else:
+        bound = data_bounds(fit.information)
     sigma = np.sqrt(np.maximum(np.diag(fit.covariance), 0.0))
     n_traj = len(fit.names) - fit.prior_sigma.size
     values = np.concatenate(
@@ -121,6 +124,8 @@ def weakest_direction(fit: DynamicsFit, obs: Observations, target_id: int) -> st
     gp = f.sensitivity[0, :3]  # (3, 8)
     k = sorted(fit.targets).index(target_id)
     pk = fit.covariance[8 * k : 8 * k + 8, 8 * k : 8 * k + 8]
+    if not np.all(np.isfinite(pk)):
+        return f'target {target_id}: no covariance (the normal matrix is singular)'
     w, v = np.linalg.eigh(gp @ pk @ gp.T)
     u, sig = v[:, -1], math.sqrt(max(float(w[-1]), 0.0))
     pos = f.state[0, :3]

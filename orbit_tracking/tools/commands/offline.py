@@ -48,10 +48,34 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
         print(f'orbit-tracking estimate: error: {exc}', file=sys.stderr)
         return 2
     est = EstimatorConfig(knot_method=args.knot_method, use_telemetry=not args.no_telemetry)
-    # read the declaration before anything is deleted: a bad file is a one-line error
+    # read the declaration and the times before anything is deleted: a one-line error
     biases = load_bias_declaration(args.biases)
+    times = None
+    if args.report_times:
+        from orbit_tracking.tools.estimate_dynamics import parse_report_times
+
+        try:
+            times = parse_report_times(args.report_times)
+        except ValueError as exc:
+            print(f'orbit-tracking estimate: error: {exc}', file=sys.stderr)
+            return 2
     out = prepare_output_folder(args.out, args.force, [bag])
     t0 = time.monotonic()
+    if args.model == 'rocket':
+        from orbit_tracking.tools.estimate_dynamics import estimate_dynamics_bag
+
+        dyn = estimate_dynamics_bag(bag, out, biases, times, args.output_step, not args.quiet)
+        for line in dyn.lines():
+            print(line)
+        print(f'wrote {", ".join(str(f) for f in dyn.files)} ({time.monotonic() - t0:.1f} s)')
+        return 0 if dyn.fit.success else 1
+    if times is not None:
+        print(
+            'orbit-tracking estimate: error: --report-times needs a dynamics model '
+            '(--model rocket)',
+            file=sys.stderr,
+        )
+        return 2
     report = estimate_bag(bag, out, est, win, not args.quiet, biases)
     for line in report.lines():
         print(line)
@@ -168,6 +192,21 @@ def add_estimate(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         choices=('sparse', 'dynamics', 'uniform', 'dense', 'polynomial'),
         default='sparse',
         help="knot placement: the seed's sparse selection (default) or a baseline",
+    )
+    s.add_argument(
+        '--model',
+        choices=('spline', 'rocket'),
+        default='spline',
+        help="trajectory model: the seed's B-spline in sliding windows (default), or seed "
+        "003's rocket-equation flight fitted to the whole bag (Earth-centred frames; "
+        'telemetry unused; exit code 1 when the fit is not a success)',
+    )
+    s.add_argument(
+        '--report-times',
+        metavar='A:B:STEP|T1,T2,...',
+        default='',
+        help='with --model rocket: also write report_times.csv, the states and thrust '
+        'acceleration with sigma at these times (both ends included), e.g. 50:170:10',
     )
     s.add_argument(
         '--biases',

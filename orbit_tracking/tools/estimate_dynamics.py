@@ -1,0 +1,394 @@
+"""``orbit-tracking estimate --model rocket``: one fit of seed 003's rocket model over the
+whole bag (:func:`~orbit_tracking.core.dynamics.solve.fit_rocket`), with the files of the
+spline estimate (``trajectory.csv``, ``biases.csv``, ``biases_by_window.csv``, ``bag/``,
+``summary.yaml``; a fit that is not a success writes ``trajectory_failed.csv`` instead, and
+no bag) and the contest's outputs: ``report_times.csv`` (states and thrust at
+the requested times, with sigma) and ``residuals.csv`` (every whitened residual).
+
+The summary says what the data can and cannot determine
+(:mod:`~orbit_tracking.core.dynamics.observability`), and when no bias is declared but
+the lines of sight miss each other by many sigma, that systematic errors are likely and
+which command estimates them.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from orbit_tracking.core.data.observations import Observations
+from orbit_tracking.core.dynamics.fit import DynamicsFit
+from orbit_tracking.core.dynamics.observability import (
+    ESTIMATED,
+    ParameterObservability,
+    classify,
+    weakest_direction,
+)
+from orbit_tracking.core.dynamics.solve import RocketConfig, fit_rocket
+from orbit_tracking.core.errors import OrbitTrackingError
+from orbit_tracking.core.estimation.bias_files import (
+    BiasDeclaration,
+    load_bias_declaration,
+    write_biases_by_window_csv,
+    write_biases_csv,
+)
+from orbit_tracking.core.estimation.results import BiasEstimate
+from orbit_tracking.core.estimation.windows import output_times, write_trajectory_csv
+from orbit_tracking.core.time import format_stamp
+from orbit_tracking.core.triangulation.intersection import Gates
+from orbit_tracking.core.triangulation.pipeline import fix_series
+from orbit_tracking.ros.conversions import TimeBase
+from orbit_tracking.tools.bag_inputs import BagContext, read_for_estimation
+from orbit_tracking.tools.estimate import (
+    resolve_declaration,
+    trajectory_messages,
+    triangulated_fixes,
+    write_output_bag,
+)
+from orbit_tracking.tools.evaluation import bias_lines, evaluate_target, evaluation_lines
+
+__all__ = ['DynamicsReport', 'estimate_dynamics_bag', 'parse_report_times']
+
+MISS_WARNING_SIGMA = 3.0
+"""Median miss of the lines of sight [their sigma] beyond which, with no bias declared,
+the tool says systematic errors are likely."""
+
+
+REPORT_MARGIN_S = 10.0
+"""Report times up to this far outside the measured span are given (the model's flight
+extrapolates, with its covariance); farther ones are left out."""
+
+
+def parse_report_times(text: str) -> np.ndarray:
+    """``'50:170:10'`` (start:stop:step, both ends included) or ``'50,60,75'`` -> times."""
+    text = text.strip()
+    try:
+        if ':' in text:
+            a, b, step = (float(x) for x in text.split(':'))
+            if not step > 0.0 or b < a:
+                raise ValueError
+            n = int(math.floor((b - a) / step + 1e-9))
+            return a + step * np.arange(n + 1)
+        return np.array([float(x) for x in text.split(',') if x.strip()])
+    except ValueError:
+        raise ValueError(
+            f"report times must be 'start:stop:step' (step > 0, stop >= start) or a comma "
+            f'list of seconds; got {text!r}'
+        ) from None
+
+
+@dataclass
+class DynamicsReport:
+    """Outcome of :func:`estimate_dynamics_bag`."""
+
+    fit: DynamicsFit
+    observability: list[ParameterObservability]
+    weakest: list[str]
+    warnings: list[str]
+    files: list[Path]
+    counts: Counter[str]
+    biases: tuple[BiasEstimate, ...]
+    evaluation: dict[int, dict[str, dict[str, float]]] = field(default_factory=dict)
+    start: str = ''
+
+    def lines(self) -> list[str]:
+        f = self.fit
+        out = [
+            f'rocket model: {"success" if f.success else "FAILED"} ({f.message}); '
+            f'{f.iterations} iterations; chi2/dof {f.chi2_dof:.3f} ({f.dof} dof); '
+            f'{sum(f.used.values())} measured values used, {sum(f.rejected.values())} '
+            f'rejected; {f.solve_time:.1f} s; start: {self.start}',
+        ]
+        for tid, tf in sorted(f.targets.items()):
+            c, tau = tf.theta[6], tf.theta[7]
+            sig = np.sqrt(np.diag(tf.covariance))
+            out.append(
+                f'target {tid}: {tf.t0:.3f}-{tf.t1:.3f} s; exhaust speed {c:.1f} +- '
+                f'{sig[6]:.2g} m/s, mass time {tau:.2f} +- {sig[7]:.2g} s at '
+                f'{tf.model.epoch:.3f} s'
+            )
+        out += self.warnings
+        out += self.weakest
+        out += [
+            p.sentence() for p in self.observability if '/' in p.name and p.status != ESTIMATED
+        ]
+        out += evaluation_lines(self.evaluation)
+        out += bias_lines(self.biases, {})
+        return out
+
+
+def _frame_config(frame: str) -> RocketConfig:
+    if frame == 'eci':
+        return RocketConfig()
+    if frame == 'earth':
+        return RocketConfig(rotating=True)
+    raise OrbitTrackingError(
+        f"the rocket model needs an Earth-centred world frame ('eci' or 'earth'); the bag's "
+        f'is {frame or "not stated"!r}'
+    )
+
+
+def _miss_sigma(fixes: list) -> float:  # type: ignore[type-arg]
+    chi = [f.fix.chi2 / f.fix.dof for f in fixes if f.fix.dof > 0]
+    return math.sqrt(float(np.median(chi))) if chi else math.nan
+
+
+def _bias_estimates(
+    fit: DynamicsFit, obs_list: list[ParameterObservability]
+) -> list[BiasEstimate]:
+    by_name = {p.name: p for p in obs_list}
+    out = []
+    for b, v in zip(fit.biases, fit.bias_values, strict=True):
+        p = by_name.get(f'{b.station}/{b.name}')
+        if p is None:  # held at its declared value
+            out.append(
+                BiasEstimate(b.station, b.name, float(v), b.sigma, b.prior, b.sigma, 'known')
+            )
+            continue
+        status = (
+            p.status
+            if p.status == ESTIMATED
+            else (
+                f'{p.status}: bound of the data {p.bound:.3g} against a prior sigma of '
+                f'{p.prior_sigma:.3g}'
+            )
+        )
+        out.append(BiasEstimate(b.station, b.name, float(v), p.sigma, b.prior, b.sigma, status))
+    return out
+
+
+def _write_report_times(path: Path, fit: DynamicsFit, times: np.ndarray, ref_ns: int) -> int:
+    cols = [
+        'time',
+        'target_id',
+        'x',
+        'y',
+        'z',
+        'vx',
+        'vy',
+        'vz',
+        'sx',
+        'sy',
+        'sz',
+        'svx',
+        'svy',
+        'svz',
+        'thrust',
+        'sigma_thrust',
+    ]
+    n = 0
+    with open(path, 'w', newline='') as fh:
+        w = csv.writer(fh)
+        w.writerow(cols)
+        for tid, tf in sorted(fit.targets.items()):
+            t = times[(times >= tf.t0 - REPORT_MARGIN_S) & (times <= tf.t1 + REPORT_MARGIN_S)]
+            if not t.size:
+                continue
+            x, cov = tf.states(t)
+            a, sa = tf.thrust(t)
+            sd = np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0.0))
+            for i in range(t.size):
+                w.writerow(
+                    [
+                        format_stamp(ref_ns, float(t[i])),
+                        tid,
+                        *(f'{v:.6f}' for v in x[i]),
+                        *(f'{v:.6g}' for v in sd[i]),
+                        f'{a[i]:.6f}',
+                        f'{sa[i]:.6g}',
+                    ]
+                )
+                n += 1
+    return n
+
+
+def _write_residuals(path: Path, fit: DynamicsFit, ref_ns: int) -> dict[str, dict[str, float]]:
+    """``residuals.csv`` (time, station, target_id, field, whitened residual; empty where
+    not measured or rejected) and the RMS per station and field."""
+    rms: dict[str, dict[str, float]] = {}
+    with open(path, 'w', newline='') as fh:
+        w = csv.writer(fh)
+        w.writerow(['time', 'station', 'target_id', 'field', 'residual_sigma'])
+        for sid, (t, fields, r, ids) in sorted(fit.residuals.items()):
+            order = np.argsort(t, kind='stable')
+            for i in order:
+                for j, f in enumerate(fields):
+                    v = r[i, j]
+                    w.writerow(
+                        [
+                            format_stamp(ref_ns, float(t[i])),
+                            sid,
+                            int(ids[i]),
+                            f,
+                            '' if not np.isfinite(v) else f'{v:.4f}',
+                        ]
+                    )
+            rms[sid] = {
+                f: float(np.sqrt(np.nanmean(r[:, j] ** 2)))
+                if np.any(np.isfinite(r[:, j]))
+                else math.nan
+                for j, f in enumerate(fields)
+            }
+    return rms
+
+
+def estimate_dynamics_bag(
+    bag: str | Path,
+    out: str | Path,
+    biases: BiasDeclaration | str | None = None,
+    report_times: np.ndarray | None = None,
+    output_step: float = 1.0,
+    progress: bool = True,
+) -> DynamicsReport:
+    """Fit the rocket model to a bag's station measurements and write the output folder.
+
+    The starts come from the bag's fixes, else from its lines of sight triangulated
+    without the miss-distance gate (biased lines miss each other), else (one station) from
+    the range-hypothesis search. Telemetry is not used.
+
+    Raises
+    ------
+    OrbitTrackingError
+        No Earth-centred world frame, no measurement, or the fit could not start.
+    """
+    decl = load_bias_declaration(biases) if isinstance(biases, str) else biases
+    ctx = BagContext.from_custom_data(bag)
+    cfg = _frame_config(ctx.world_frame)
+    buf, counts = read_for_estimation(bag, ctx, progress)
+    obs = buf.observations()
+    counts.update(buf.counts)
+    declared, notes = resolve_declaration(decl, obs)
+    warnings = list(notes)
+    start = 'the fixes of the bag'
+    if not obs.fixes and len(obs.stations) >= 2:
+        fixes = triangulated_fixes(bag, ctx, progress, Gates(miss_probability=1.0))
+        obs = Observations(obs.stations, {}, fix_series(fixes))
+        miss = _miss_sigma(fixes)
+        start = f'{len(fixes)} fixes triangulated from the bag (median miss {miss:.1f} sigma)'
+        if not declared and miss > MISS_WARNING_SIGMA:
+            warnings.append(
+                f'the lines of sight miss each other by {miss:.1f} sigma (median): the stations '
+                f'have systematic errors the fit does not model; estimate them with '
+                f'orbit-tracking estimate {bag} --model rocket --biases auto --out DIR'
+            )
+    elif not obs.fixes:
+        start = "range-hypothesis search on one station's angles"
+        if not declared:
+            warnings.append(
+                'one station alone cannot tell its systematic errors from the trajectory: '
+                'an error of its angles moves the whole flight without changing the '
+                'residuals, so the sigma covers the noise only; declare them (--biases auto) '
+                'to see the uncertainty they add'
+            )
+    obs = Observations(obs.stations, {}, obs.fixes)
+    fit = fit_rocket(obs, biases=declared, config=cfg)
+    classes = classify(fit)
+    weakest = [weakest_direction(fit, obs, tid) for tid in sorted(fit.targets)]
+    bias_rows = _bias_estimates(fit, classes)
+    tb = ctx.timebase or TimeBase(0)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    tracks = {}
+    for tid, tf in sorted(fit.targets.items()):
+        t = output_times(tf.t0, tf.t1, output_step)
+        tracks[tid] = (t, *tf.states(t))
+    main = min(tracks)
+    # a failed fit's states are no result: flagged by the file name, never trajectory.csv
+    stem = 'trajectory' if fit.success else 'trajectory_failed'
+    files = [out / f'{stem}.csv']
+    write_trajectory_csv(files[0], *tracks[main], tb.ref_ns)
+    if len(tracks) > 1:
+        for tid, tr in tracks.items():
+            files.append(out / f'{stem}_target_{tid}.csv')
+            write_trajectory_csv(files[-1], *tr, tb.ref_ns)
+    files.append(out / 'biases.csv')
+    write_biases_csv(files[-1], bias_rows)
+    files.append(out / 'biases_by_window.csv')
+    t_lo = min(tf.t0 for tf in fit.targets.values())
+    t_hi = max(tf.t1 for tf in fit.targets.values())
+    write_biases_by_window_csv(files[-1], [(t_lo, t_hi, bias_rows)], tb.ref_ns)
+    files.append(out / 'residuals.csv')
+    rms = _write_residuals(files[-1], fit, tb.ref_ns)
+    if report_times is not None and report_times.size:
+        files.append(out / 'report_times.csv')
+        _write_report_times(files[-1], fit, np.asarray(report_times, float), tb.ref_ns)
+    if fit.success:  # a failed fit is not published on the bag's topics
+        msgs = trajectory_messages(tracks, main, ctx.world_frame or 'earth', tb)
+        files.append(write_output_bag(out / 'bag', msgs))
+    report = DynamicsReport(
+        fit, classes, weakest, warnings, files, counts, tuple(bias_rows), start=start
+    )
+    for tid, (tt, x, cov) in tracks.items():
+        if tid in ctx.truth and tt.size:
+            ev = evaluate_target(ctx, tid, tt, x, cov)
+            if ev:
+                report.evaluation[tid] = ev
+    summary = {
+        'bag': str(bag),
+        'scenario': ctx.scenario,
+        'model': 'rocket',
+        'start': start,
+        'config': {
+            'output_step': output_step,
+            'biases': '' if decl is None or decl.empty else decl.source or 'declared',
+            'bias_parameters': len(declared),
+            'gm': cfg.gm,
+            'j2': cfg.j2,
+            'rotating_frame': cfg.rotating,
+        },
+        'counts': {k: int(v) for k, v in sorted(counts.items())},
+        'totals': {
+            'windows': 1,
+            'succeeded': int(fit.success),
+            'failed': int(not fit.success),
+            'iterations': int(fit.iterations),
+            'output_states': int(tracks[main][0].size),
+        },
+        'fit': {
+            'success': bool(fit.success),
+            'message': fit.message,
+            'chi2_dof': float(fit.chi2_dof),
+            'dof': int(fit.dof),
+            'covariance_scale': float(fit.covariance_scale),
+            'solve_time_s': float(fit.solve_time),
+            'used': {k: int(v) for k, v in sorted(fit.used.items())},
+            'rejected': {f'{s}/{w}': int(n) for (s, w), n in sorted(fit.rejected.items())},
+            'residual_rms_sigma': rms,
+        },
+        'targets': {
+            int(tid): {
+                'epoch': float(tf.model.epoch),
+                'span': [float(tf.t0), float(tf.t1)],
+                'parameters': {
+                    name: {'value': float(v), 'sigma': float(s)}
+                    for name, v, s in zip(
+                        tf.model.names, tf.theta, np.sqrt(np.diag(tf.covariance)), strict=True
+                    )
+                },
+            }
+            for tid, tf in sorted(fit.targets.items())
+        },
+        'observability': [
+            {
+                'parameter': p.name,
+                'status': p.status,
+                'estimate': p.value,
+                'sigma': p.sigma,
+                'bound': p.bound,
+                'prior_sigma': p.prior_sigma,
+            }
+            for p in classes
+        ],
+        'weakest_direction': weakest,
+        'warnings': warnings,
+        'evaluation': report.evaluation,
+    }
+    (out / 'summary.yaml').write_text(yaml.safe_dump(summary, sort_keys=False))
+    files.append(out / 'summary.yaml')
+    return report

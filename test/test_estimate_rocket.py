@@ -1,0 +1,140 @@
+"""``orbit-tracking estimate --model rocket`` on simulated seed 003 bags (issue 15): the
+files, the contest's report times, the biases with their observability, the warning when
+biased lines of sight are fitted without biases, and the single satellite."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from orbit_tracking.core.estimation.windows import read_trajectory_csv
+from orbit_tracking.tools.cli import main as cli_main
+from orbit_tracking.tools.estimate_dynamics import parse_report_times
+
+
+@pytest.fixture(scope='module')
+def bags(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    root = tmp_path_factory.mktemp('seed003')
+    out = {}
+    for name in ('seed003_q3', 'seed003_q4'):
+        out[name] = root / name
+        args = ['simulate', '--scenario', name, '--out', str(out[name]), '--quiet']
+        assert cli_main(args) == 0
+    return out
+
+
+def _rows(path: Path) -> list[dict[str, str]]:
+    with open(path, newline='') as fh:
+        return list(csv.DictReader(fh))
+
+
+def test_report_times_include_both_ends() -> None:
+    assert parse_report_times('50:170:10').tolist() == [50.0 + 10 * k for k in range(13)]
+    assert parse_report_times('50, 75.5').tolist() == [50.0, 75.5]
+    with pytest.raises(ValueError, match='start:stop:step'):
+        parse_report_times('50:170:0')
+
+
+def test_q3_with_biases_gives_the_contest_outputs(
+    bags: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / 'q3'
+    args = [
+        'estimate',
+        str(bags['seed003_q3']),
+        '--model',
+        'rocket',
+        '--biases',
+        'auto',
+        '--report-times',
+        '50:170:10',
+        '--out',
+        str(out),
+        '--quiet',
+    ]
+    assert cli_main(args) == 0
+    printed = capsys.readouterr().out
+    assert 'rocket model: success' in printed
+    summary = yaml.safe_load((out / 'summary.yaml').read_text())
+    assert summary['model'] == 'rocket' and summary['fit']['success']
+    ev = summary['evaluation'][0]['outside_gaps']
+    assert ev['rms_position_m'] < 1.2 * 1.68e3  # the bound of the issue
+    assert ev['mean_nees_state'] < 20.0
+    status = {o['parameter']: o['status'] for o in summary['observability']}
+    assert status['sat06/los_alpha'] == 'not observable'
+    assert status['sat09/los_alpha'] == 'estimated'
+    assert 'traded against sat06/los_alpha' in summary['weakest_direction'][0]
+    times = _rows(out / 'report_times.csv')
+    assert len(times) == 13  # 50 s is 0.18 s before the first line of sight: extrapolated
+    assert float(times[0]['thrust']) == pytest.approx(3700.0 / 150.0, rel=0.01)
+    assert all(float(r['sx']) > 0 for r in times)
+    biases = _rows(out / 'biases.csv')
+    assert list(biases[0]) == ['station', 'field', 'bias', 'sigma']  # the contract's columns
+    assert len(biases) == 6
+    by_window = _rows(out / 'biases_by_window.csv')
+    assert any(r['status'].startswith('not observable') for r in by_window)
+    traj = read_trajectory_csv(out / 'trajectory.csv')
+    assert traj['time'].size > 1000
+    assert (out / 'bag' / 'metadata.yaml').is_file()
+    resid = _rows(out / 'residuals.csv')
+    assert {r['station'] for r in resid} == {'sat06', 'sat09'}
+    assert set(summary['fit']['residual_rms_sigma']) == {'sat06', 'sat09'}
+
+
+def test_q3_without_biases_fails_and_says_what_to_run(
+    bags: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / 'q3'
+    args = ['estimate', str(bags['seed003_q3']), '--model', 'rocket', '--out', str(out), '--quiet']
+    assert cli_main(args) == 1
+    printed = capsys.readouterr().out
+    assert 'FAILED' in printed and 'inconsistent' in printed
+    assert 'miss each other by' in printed and '--biases auto' in printed
+    assert not (out / 'trajectory.csv').exists()  # never published as a result
+    assert (out / 'trajectory_failed.csv').is_file()
+    assert not (out / 'bag').exists()
+
+
+def test_one_satellite_alone(
+    bags: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / 'q4'
+    args = [
+        'estimate',
+        str(bags['seed003_q4']),
+        '--model',
+        'rocket',
+        '--biases',
+        'auto',
+        '--out',
+        str(out),
+        '--quiet',
+    ]
+    assert cli_main(args) == 0
+    printed = capsys.readouterr().out
+    assert 'range-hypothesis search' in printed
+    summary = yaml.safe_load((out / 'summary.yaml').read_text())
+    status = {o['parameter']: o['status'] for o in summary['observability']}
+    assert {status[f'sat09/{n}'] for n in ('los_alpha', 'los_beta', 'los_theta')} == {
+        'not observable'
+    }
+    ev = summary['evaluation'][1]['outside_gaps']
+    assert ev['mean_nees_state'] < 20.0  # the sigma covers what the biases do
+    assert np.isfinite(ev['rms_position_m'])
+
+
+def test_report_times_need_a_dynamics_model(bags: dict[str, Path], tmp_path: Path) -> None:
+    args = [
+        'estimate',
+        str(bags['seed003_q3']),
+        '--report-times',
+        '50:170:10',
+        '--out',
+        str(tmp_path / 'x'),
+        '--quiet',
+    ]
+    assert cli_main(args) == 2
