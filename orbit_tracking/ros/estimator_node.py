@@ -24,7 +24,8 @@ Example::
 
 The module is a little over the project's ~600-line guide: about 220 lines of it are the
 node's parameter declarations (each with its description and range); the estimation itself
-is one call into :func:`orbit_tracking.core.estimation.estimator.estimate`.
+is one call into :func:`orbit_tracking.core.estimation.estimator.estimate` (with
+``model: rocket``, :func:`orbit_tracking.core.dynamics.solve.rocket_window`).
 """
 
 from __future__ import annotations
@@ -45,6 +46,7 @@ from std_srvs.srv import Trigger
 
 from orbit_tracking.core.data.buffer import ObservationBuffer
 from orbit_tracking.core.data.observations import Observations
+from orbit_tracking.core.dynamics.solve import RocketConfig, rocket_window
 from orbit_tracking.core.errors import OrbitTrackingError
 from orbit_tracking.core.estimation.bias_files import load_bias_declaration, station_fields
 from orbit_tracking.core.estimation.config import KNOT_METHODS, EstimatorConfig
@@ -77,6 +79,9 @@ from orbit_tracking.ros.journal import EstimatorJournal
 from orbit_tracking.ros.parameters import declare
 from orbit_tracking.ros.runner import run_node
 from orbit_tracking.ros.station_inputs import StationInputs
+
+MODELS = ('spline', 'rocket')
+"""The trajectory models of the ``model`` parameter."""
 
 __all__ = ['EstimatorNode', 'main']
 
@@ -212,6 +217,18 @@ class EstimatorNode(StationInputs):
                 max_value=600.0,
             ),
         )
+        self.model = declare(
+            self,
+            'model',
+            'spline',
+            "Trajectory model: 'spline' (the seed's B-spline with sparse knots) or 'rocket' "
+            "(seed 003's rocket-equation flight, gravity + thrust along the velocity, fitted "
+            "to each window's raw measurements; Earth-centred world frames 'eci' or 'earth'; "
+            'telemetry unused).',
+            read_only=True,
+        )
+        if self.model not in MODELS:
+            raise ValueError(f'model must be one of {", ".join(MODELS)}; got {self.model!r}')
         knot_method = declare(
             self,
             'knot_method',
@@ -632,6 +649,14 @@ class EstimatorNode(StationInputs):
                 return False
         return self.count_publishers('triangulation/fixes') > 0
 
+    def _rocket_config(self) -> RocketConfig:
+        if self.world_frame not in ('eci', 'earth'):
+            raise OrbitTrackingError(
+                f"model 'rocket' needs an Earth-centred world frame ('eci' or 'earth'); the "
+                f'inputs are in {self.world_frame or "no frame yet"!r}'
+            )
+        return RocketConfig(rotating=self.world_frame == 'earth')
+
     def _solve(self, span: Span, tb: TimeBase) -> bool:
         t0, t1 = span
         wall = time.monotonic()
@@ -640,7 +665,10 @@ class EstimatorNode(StationInputs):
         ids = None if self.target_id < 0 else [self.target_id]
         try:
             cfg = self._window_config(obs)
-            est = estimate(obs, t0, t1, cfg, ids, self.previous or None)
+            if self.model == 'rocket':
+                est = rocket_window(obs, t0, t1, ids, cfg.biases, self._rocket_config())
+            else:
+                est = estimate(obs, t0, t1, cfg, ids, self.previous or None)
             if not est.success:  # inconsistent or not converged: withheld, never final
                 return self._failed(span, wall, f'not published: {est.message}', withheld)
             self._publish_window(est, tb)
@@ -654,7 +682,8 @@ class EstimatorNode(StationInputs):
                 span, wall, f'internal error {type(exc).__name__}: {exc}', withheld
             )
         dt = time.monotonic() - wall
-        self.previous = dict(est.targets)
+        if self.model == 'spline':  # a rocket flight cannot seed the next window's spline
+            self.previous = dict(est.targets)
         self.counts['windows_solved'] += 1
         self._remember(span, est, dt, withheld)
         used = sum(v for k, v in est.used.items() if not k.startswith('telemetry_'))

@@ -52,6 +52,13 @@ exhaust speed ``c`` [m/s] and ``tau = m0 / mdot`` at the epoch [s]."""
 
 _RTOL = 1e-11
 _ATOL = np.concatenate([np.full(3, 1e-6), np.full(3, 1e-9), np.full(48, 1e-10)])
+_MAX_THRUST = 2000.0
+"""Largest thrust acceleration [m/s^2] (about 200 g) a flight may reach in its span:
+beyond it the parameters are no vehicle (and the integration would crawl)."""
+_MAX_RHS_CALLS = 100_000
+"""Right-hand-side evaluations after which an integration is abandoned."""
+_MIN_RADIUS = 1.0e6
+"""Distance from the Earth's centre [m] below which a flight is abandoned."""
 _MIN_MASS_TIME_S = 1.0
 """The mass may not run out within a second of any requested time (the thrust
 acceleration diverges there)."""
@@ -143,8 +150,15 @@ class RocketModel:
         wx = np.array([[0.0, -w[2], 0.0], [w[2], 0.0, 0.0], [0.0, 0.0, 0.0]])
         t0 = self.epoch
 
+        calls = [0]
+
         def rhs(t: float, y: FloatArray) -> FloatArray:
+            calls[0] += 1
+            if calls[0] > _MAX_RHS_CALLS:
+                raise FlightError(f'integration abandoned after {_MAX_RHS_CALLS} evaluations')
             r, v = y[:3], y[3:6]
+            if not np.linalg.norm(r) > _MIN_RADIUS:
+                raise FlightError("the flight passes through the Earth's centre")
             s = tau - (t - t0)
             speed = float(np.linalg.norm(v))
             vh = v / speed
@@ -187,6 +201,12 @@ class RocketModel:
             raise FlightError(
                 f'the mass runs out at {self.epoch + th[7]:.3f} s, before the last time '
                 f'{tt.max():.3f} s'
+            )
+        late = th[7] - (tt.max() - self.epoch)
+        if th[6] <= 0.0 or th[6] / late > _MAX_THRUST:
+            raise FlightError(
+                f'the thrust acceleration reaches {th[6] / late:.3g} m/s^2 within the span '
+                f'(exhaust speed {th[6]:.4g} m/s, mass time {th[7]:.4g} s): no vehicle'
             )
         if np.linalg.norm(th[3:6]) <= 0.0:
             raise FlightError('the thrust direction needs a nonzero velocity')

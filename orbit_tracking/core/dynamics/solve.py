@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
+from typing import cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -14,12 +15,14 @@ from numpy.typing import NDArray
 from orbit_tracking.core import frames
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.dynamics.fit import DynamicsFit, FitConfig, fit_dynamics
+from orbit_tracking.core.dynamics.observability import ESTIMATED, classify
 from orbit_tracking.core.dynamics.rocket import FlightError, RocketModel
-from orbit_tracking.core.dynamics.start import start_candidates, start_from_fixes
+from orbit_tracking.core.dynamics.start import rough_fixes, start_candidates, start_from_fixes
 from orbit_tracking.core.errors import OrbitTrackingError
+from orbit_tracking.core.estimation.results import BiasEstimate, Estimate, TargetSolution
 from orbit_tracking.core.models.systematic import BiasParameter
 
-__all__ = ['RocketConfig', 'fit_rocket']
+__all__ = ['RocketConfig', 'fit_rocket', 'rocket_window']
 
 FloatArray = NDArray[np.float64]
 
@@ -67,6 +70,8 @@ def _starts(
         raise OrbitTrackingError(f'target {tid}: no station measures it')
     model = cfg.model(float(min(t.min() for t in times)))
     fixes = obs.fixes.get(tid)
+    if fixes is None or len(fixes) < 6:
+        fixes = rough_fixes(obs.stations, tid)
     if fixes is not None and len(fixes) >= 6:
         return [(model, start_from_fixes(fixes, model))]
     # no fixes: the station with the most rows about this target, angles only
@@ -84,10 +89,12 @@ def fit_rocket(
 ) -> DynamicsFit:
     """Fit the rocket model of every target (jointly, sharing the biases).
 
-    Each target starts from its fixes (``obs.fixes``) when it has some, else from the
-    range-hypothesis search on the angles of the station that sees it most
-    (:func:`~.start.start_candidates`). With several starts each is fitted a few steps
-    (:data:`SCOUT_ITERATIONS`, biases held) and the fit goes on from the one of lowest cost.
+    Each target starts from its fixes (``obs.fixes``) when it has some, else from rough
+    fixes made from the rows (:func:`~.start.rough_fixes`: radar points, two stations'
+    crossing lines), else from the range-hypothesis search on the angles of the station
+    that sees it most (:func:`~.start.start_candidates`). With several starts each is
+    fitted a few steps (:data:`SCOUT_ITERATIONS`, biases held) and the fit goes on from the
+    one of lowest cost.
 
     Raises
     ------
@@ -125,3 +132,57 @@ def fit_rocket(
         return fit_dynamics(obs, first, biases, cfg.fit)
     except FlightError as exc:
         raise OrbitTrackingError(f'the rocket fit failed: {exc}') from exc
+
+
+def rocket_window(
+    obs: Observations,
+    t0: float,
+    t1: float,
+    target_ids: Sequence[int] | None = None,
+    biases: Sequence[BiasParameter] = (),
+    config: RocketConfig | None = None,
+) -> Estimate:
+    """:func:`fit_rocket` on the rows in ``[t0, t1]``, reported as a window
+    :class:`~orbit_tracking.core.estimation.results.Estimate` (what the estimator node
+    publishes with ``model: rocket``). Its targets are :class:`~.fit.TargetFlight` objects:
+    they offer what the node and the stitcher use of a solution (``t0``, ``t1``,
+    ``states``), not the spline's coefficients, so they cannot seed a spline window.
+    A bias's status is its observability class."""
+    fit = fit_rocket(obs.window(t0, t1), target_ids, biases, config)
+    classes = {p.name: p for p in classify(fit)}
+    rows = []
+    for b, v in zip(fit.biases, fit.bias_values, strict=True):
+        p = classes.get(f'{b.station}/{b.name}')
+        if p is None:
+            rows.append(
+                BiasEstimate(b.station, b.name, float(v), b.sigma, b.prior, b.sigma, 'known')
+            )
+        else:
+            status = ESTIMATED if p.status == ESTIMATED else f'{p.status}: bound {p.bound:.3g}'
+            rows.append(
+                BiasEstimate(b.station, b.name, float(v), p.sigma, b.prior, b.sigma, status)
+            )
+    d = np.sqrt(np.maximum(np.diag(fit.information), 1e-300))
+    with np.errstate(all='ignore'):
+        cond = float(np.linalg.cond(fit.information / np.outer(d, d)))
+    return Estimate(
+        success=fit.success,
+        message=fit.message,
+        t0=t0,
+        t1=t1,
+        targets=cast('dict[int, TargetSolution]', dict(fit.targets)),
+        iterations=fit.iterations,
+        halvings=0,
+        cost=fit.cost,
+        chi2_dof=fit.chi2_dof,
+        condition=cond,
+        n_parameters=len(fit.names),
+        used=fit.used,
+        rejected=fit.rejected,
+        residuals={s: (t, f, r) for s, (t, f, r, _) in fit.residuals.items()},
+        knot_time=0.0,
+        solve_time=fit.solve_time,
+        covariance=fit.covariance,
+        biases=tuple(rows),
+        covariance_scale=fit.covariance_scale,
+    )

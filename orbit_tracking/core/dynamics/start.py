@@ -4,6 +4,9 @@
   through the fixes gives the state at the epoch; the thrust acceleration it implies
   (its second derivative minus gravity) gives the rocket-equation pair: ``1 / a(t) =
   (tau - (t - t0)) / c`` is a straight line in ``t``, fitted by least squares.
+* **Rough fixes from the rows themselves** (:func:`rough_fixes`), when no fixes came
+  with the data: a pulse radar's range along its line of sight, or the midpoint of the
+  common perpendicular of two stations' lines of sight at nearly the same epoch.
 * **From one station's lines of sight alone** (:func:`start_from_lines`): a search over
   range hypotheses (an admissible region): the vehicle lies on the first and on the last
   line of sight at altitudes between ``min_altitude`` and ``max_altitude``; for each pair
@@ -28,7 +31,7 @@ from orbit_tracking.core.errors import OrbitTrackingError
 from orbit_tracking.core.models.dynamics import gravity
 from orbit_tracking.core.models.measurements import los_unit_vectors, predict, residual
 
-__all__ = ['DEFAULT_EXHAUST_SPEED', 'start_candidates', 'start_from_fixes']
+__all__ = ['DEFAULT_EXHAUST_SPEED', 'rough_fixes', 'start_candidates', 'start_from_fixes']
 
 FloatArray = NDArray[np.float64]
 
@@ -219,3 +222,75 @@ def start_candidates(
     if not out:
         raise OrbitTrackingError(f'target {target_id}: no range hypothesis gave a start')
     return [th for _, th in sorted(out, key=lambda c: c[0])]
+
+
+def _units(st: StationObservations, rows: NDArray[np.intp]) -> FloatArray | None:
+    fields, vals, _ = _angles(st, rows)
+    if len(fields) != 2:
+        return None
+    kind = 'los' if 'los_alpha' in fields else 'angles'
+    u = los_unit_vectors(kind, vals, fields, st.pose.rotation[rows])
+    if kind == 'los':  # the line, not the ray
+        pos = st.pose.position[rows]
+        u[np.einsum('mi,mi->m', u, pos) > 0.0] *= -1.0
+    return u
+
+
+def rough_fixes(
+    stations: tuple[StationObservations, ...],
+    target_id: int,
+    max_dt: float = 0.5,
+    min_angle_deg: float = 2.0,
+) -> FixSeries | None:
+    """Position fixes good enough to start from, made from the rows: every pulse radar
+    row with a range (the point at that range along its line of sight), and for the two
+    angle-measuring stations with most rows, the midpoint of the common perpendicular of
+    each line of the first with the second's line nearest in time (within ``max_dt`` s,
+    lines at least ``min_angle_deg`` apart). Their covariance is a nominal (1 km)^2: they
+    only start the fit. None when there are too few."""
+    t_all: list[FloatArray] = []
+    p_all: list[FloatArray] = []
+    lines = []
+    for st in stations:
+        rows = np.flatnonzero(st.table.target_id == target_id)
+        if rows.size == 0:
+            continue
+        u = _units(st, rows)
+        if u is None:
+            continue
+        fields = st.table.fields
+        if 'range' in fields:
+            rng = st.table.values[rows, fields.index('range')]
+            ok = np.isfinite(rng) & np.all(np.isfinite(u), axis=1)
+            t_all.append(st.table.time[rows][ok])
+            p_all.append(st.pose.position[rows][ok] + rng[ok, None] * u[ok])
+        else:
+            lines.append((st.table.time[rows], st.pose.position[rows], u))
+    lines.sort(key=lambda ln: -ln[0].size)
+    if len(lines) >= 2:
+        (ta, oa, ua), (tb, ob, ub) = lines[:2]
+        j = np.clip(np.searchsorted(tb, ta), 1, tb.size - 1)
+        j = np.where(np.abs(tb[j - 1] - ta) < np.abs(tb[j] - ta), j - 1, j)
+        close = np.abs(tb[j] - ta) <= max_dt
+        ob, ub = ob[j], ub[j]
+        w = oa - ob
+        b = np.einsum('mi,mi->m', ua, ub)
+        d = np.einsum('mi,mi->m', ua, w)
+        e = np.einsum('mi,mi->m', ub, w)
+        den = 1.0 - b * b
+        good = close & (den > math.sin(math.radians(min_angle_deg)) ** 2)
+        with np.errstate(all='ignore'):
+            sa = (b * e - d) / den
+            sb = (e - b * d) / den
+        pts = 0.5 * (oa + sa[:, None] * ua + ob + sb[:, None] * ub)
+        good &= np.all(np.isfinite(pts), axis=1)
+        t_all.append(0.5 * (ta + tb[j])[good])
+        p_all.append(pts[good])
+    if not t_all:
+        return None
+    t = np.concatenate(t_all)
+    if t.size < 6:
+        return None
+    order = np.argsort(t, kind='stable')
+    p = np.vstack(p_all)[order]
+    return FixSeries(target_id, t[order], p, np.tile(np.eye(3) * 1e6, (t.size, 1, 1)))

@@ -1,4 +1,4 @@
-"""``orbit-tracking bench``: the benchmark suites (triangulation, estimator, biases, the
+"""``orbit-tracking bench``: the benchmark suites (triangulation, estimator, biases, seed 003, the
 live nodes over DDS and fault injection over DDS), printed as tables and optionally written
 into docs/BENCHMARKS.md."""
 
@@ -73,6 +73,25 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         print(text)
         if args.write_docs:
             write_docs(args.docs, 'biases', text)
+            print(f'updated {args.docs}')
+    if args.suite in ('seed003', 'all'):
+        from orbit_tracking.tools.bench.seed003 import (
+            SEED003_SCENARIOS,
+            bench_seed003,
+            seed003_tables,
+        )
+
+        t0 = time.monotonic()
+        plots = Path(args.docs).parent / 'bench' if args.write_docs else args.plots
+        srows = bench_seed003(
+            args.scenarios or SEED003_SCENARIOS, args.seeds, not args.quiet, print, plots
+        )
+        text = seed003_tables(srows, args.seeds) + footer(t0)
+        if plots:
+            text += f' Error plots (seed 0): `{plots}/<scenario>_<biases>_rocket.png`.'
+        print(text)
+        if args.write_docs:
+            write_docs(args.docs, 'seed003', text)
             print(f'updated {args.docs}')
     if args.suite == 'dds':  # live nodes over DDS; not part of 'all'
         from orbit_tracking.tools.bench.dds import (
@@ -200,7 +219,16 @@ def add_bench(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     s.add_argument('--quiet', action='store_true', help='no progress lines')
     s.add_argument(
         '--suite',
-        choices=('triangulation', 'estimator', 'biases', 'all', 'dds', 'faults', 'robustness'),
+        choices=(
+            'triangulation',
+            'estimator',
+            'biases',
+            'seed003',
+            'all',
+            'dds',
+            'faults',
+            'robustness',
+        ),
         default='all',
         help='which benchmark to run (default: all; dds, the live nodes over DDS, and faults, '
         'bad messages thrown at them, only when asked)',
