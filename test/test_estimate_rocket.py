@@ -138,3 +138,18 @@ def test_report_times_need_a_dynamics_model(bags: dict[str, Path], tmp_path: Pat
         '--quiet',
     ]
     assert cli_main(args) == 2
+
+
+def test_the_seed003_benchmark_compares_models_with_the_rocket_bound() -> None:
+    from orbit_tracking.tools.bench.seed003 import bench_seed003, seed003_tables
+
+    rows = bench_seed003(['seed003_q2'], seeds=1, progress=False)
+    by_model = {r.model: r for r in rows}
+    rocket = by_model['rocket']
+    pos = float(np.sqrt(np.mean(rocket.pos)))
+    crb = float(np.sqrt(np.mean(rocket.crb_pos)))
+    assert crb == pytest.approx(1.66, rel=0.1)  # the bound
+    assert pos < 1.5 * crb
+    assert rocket.failures == 0 and by_model['spline'].runs == 1
+    table = seed003_tables(rows, 1)
+    assert '| seed003_q2 | none | rocket | 0 |' in table
