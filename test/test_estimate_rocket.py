@@ -153,3 +153,14 @@ def test_the_seed003_benchmark_compares_models_with_the_rocket_bound() -> None:
     assert rocket.failures == 0 and by_model['spline'].runs == 1
     table = seed003_tables(rows, 1)
     assert '| seed003_q2 | none | rocket | 0 |' in table
+
+
+def test_the_spline_estimate_of_biased_lines_says_what_to_run(
+    bags: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """q3 without a bias declaration: every fix is refused by the miss-distance gate; the
+    error says why and gives the command."""
+    args = ['estimate', str(bags['seed003_q3']), '--out', str(tmp_path / 'x'), '--quiet']
+    assert cli_main(args) != 0
+    err = capsys.readouterr().err
+    assert 'miss each other by' in err and '--biases auto' in err

@@ -64,6 +64,7 @@ __all__ = [
     'EstimationReport',
     'estimate_bag',
     'estimator_configs',
+    'median_miss_sigma',
     'resolve_declaration',
     'triangulated_fixes',
     'trajectory_messages',
@@ -128,6 +129,18 @@ class EstimationReport:
         out += self.bias_notes
         out += bias_lines(self.biases, self.bias_evaluation)
         return out
+
+
+MISS_WARNING_SIGMA = 3.0
+"""Median miss of the lines of sight [their sigma] beyond which, with no bias declared,
+the tools say systematic errors are likely."""
+
+
+def median_miss_sigma(fixes: list[TimedFix]) -> float:
+    """Median over the fixes of ``sqrt(chi2 / dof)``: how many sigma the lines of sight
+    miss each other by (nan without a fix with degrees of freedom)."""
+    chi = [f.fix.chi2 / f.fix.dof for f in fixes if f.fix.dof > 0]
+    return math.sqrt(float(np.median(chi))) if chi else math.nan
 
 
 def resolve_declaration(
@@ -375,7 +388,19 @@ def estimate_bag(
                 f' (measurements per station without one: {withheld})' if withheld else ''
             )
         why = '; '.join([why or 'no data', *ctx.state_lines()])
-        raise EstimationError(f'{bag}: no window could be solved ({why})')
+        hint = ''
+        if rough.startswith('0 fixes triangulated') and not est_cfg.biases:
+            miss = median_miss_sigma(
+                triangulated_fixes(bag, ctx, False, Gates(miss_probability=1.0))
+            )
+            if miss > MISS_WARNING_SIGMA:
+                hint = (
+                    f'. The lines of sight miss each other by {miss:.1f} sigma (median), so the '
+                    f'miss-distance gate refused every fix: the stations have systematic '
+                    f'errors; estimate them with orbit-tracking estimate {bag} --biases auto '
+                    f'--out DIR (or --model rocket --biases auto for a boosting vehicle)'
+                )
+        raise EstimationError(f'{bag}: no window could be solved ({why}){hint}')
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     t_lo = min(e.t0 for e in estimates)

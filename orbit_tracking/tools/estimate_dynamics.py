@@ -46,6 +46,8 @@ from orbit_tracking.core.triangulation.pipeline import fix_series
 from orbit_tracking.ros.conversions import TimeBase
 from orbit_tracking.tools.bag_inputs import BagContext, read_for_estimation
 from orbit_tracking.tools.estimate import (
+    MISS_WARNING_SIGMA,
+    median_miss_sigma,
     resolve_declaration,
     trajectory_messages,
     triangulated_fixes,
@@ -54,11 +56,6 @@ from orbit_tracking.tools.estimate import (
 from orbit_tracking.tools.evaluation import bias_lines, evaluate_target, evaluation_lines
 
 __all__ = ['DynamicsReport', 'estimate_dynamics_bag', 'parse_report_times']
-
-MISS_WARNING_SIGMA = 3.0
-"""Median miss of the lines of sight [their sigma] beyond which, with no bias declared,
-the tool says systematic errors are likely."""
-
 
 REPORT_MARGIN_S = 10.0
 """Report times up to this far outside the measured span are given (the model's flight
@@ -132,11 +129,6 @@ def _frame_config(frame: str) -> RocketConfig:
         f"the rocket model needs an Earth-centred world frame ('eci' or 'earth'); the bag's "
         f'is {frame or "not stated"!r}'
     )
-
-
-def _miss_sigma(fixes: list) -> float:  # type: ignore[type-arg]
-    chi = [f.fix.chi2 / f.fix.dof for f in fixes if f.fix.dof > 0]
-    return math.sqrt(float(np.median(chi))) if chi else math.nan
 
 
 def _bias_estimates(
@@ -269,7 +261,7 @@ def estimate_dynamics_bag(
     if not obs.fixes and len(obs.stations) >= 2:
         fixes = triangulated_fixes(bag, ctx, progress, Gates(miss_probability=1.0))
         obs = Observations(obs.stations, {}, fix_series(fixes))
-        miss = _miss_sigma(fixes)
+        miss = median_miss_sigma(fixes)
         start = f'{len(fixes)} fixes triangulated from the bag (median miss {miss:.1f} sigma)'
         if not declared and miss > MISS_WARNING_SIGMA:
             warnings.append(
