@@ -1,3 +1,15 @@
-"""Trajectory models with dynamics (seed 003): a rocket-equation flight fitted to the raw
-measurements (:mod:`.rocket`, :mod:`.fit`), and how well its parameters are known
-(:mod:`.observability`)."""
+"""Trajectory models with dynamics (seed 003).
+
+* :mod:`.rocket`: gravity plus a thrust along the velocity with the rocket equation's
+  magnitude, eight parameters, sensitivities by the variational equations;
+* :mod:`.fit`: a model fitted to the raw measurements jointly with the biases
+  (Levenberg-Marquardt), and its Cramér–Rao bound at the truth;
+* :mod:`.start`, :mod:`.solve`: starting points (fixes, rough fixes from the rows, a
+  range-hypothesis search for one station) and the one call the tools and the node make;
+* :mod:`.thrust_spline`, :mod:`.adjoint_problem`, :mod:`.adjoint`: the seed's adjoint
+  (4D-Var) assimilation of a free thrust profile;
+* :mod:`.quadratic`: the seed's quadratic-polynomial baseline;
+* :mod:`.observability`: what the data can and cannot determine, per parameter.
+"""
+
+__all__: list[str] = []
