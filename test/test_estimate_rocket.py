@@ -151,6 +151,11 @@ def test_the_seed003_benchmark_compares_models_with_the_rocket_bound() -> None:
     assert crb == pytest.approx(1.66, rel=0.1)  # the bound
     assert pos < 1.5 * crb
     assert rocket.failures == 0 and by_model['spline'].runs == 1
+    adjoint = by_model['adjoint']  # against its own bound (a free thrust profile)
+    assert adjoint.failures == 0
+    assert float(np.sqrt(np.mean(adjoint.pos))) < 1.5 * float(np.sqrt(np.mean(adjoint.crb_pos)))
+    quad = float(np.sqrt(np.mean(by_model['quadratic'].vel)))
+    assert float(np.sqrt(np.mean(adjoint.vel))) < 0.5 * quad  # the seed: about half
     table = seed003_tables(rows, 1)
     assert '| seed003_q2 | none | rocket | 0 |' in table
 
@@ -164,3 +169,29 @@ def test_the_spline_estimate_of_biased_lines_says_what_to_run(
     assert cli_main(args) != 0
     err = capsys.readouterr().err
     assert 'miss each other by' in err and '--biases auto' in err
+
+
+def test_the_adjoint_model_from_the_command_line(
+    bags: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / 'q3'
+    args = [
+        'estimate',
+        str(bags['seed003_q3']),
+        '--model',
+        'adjoint',
+        '--biases',
+        'auto',
+        '--report-times',
+        '50:170:10',
+        '--out',
+        str(out),
+        '--quiet',
+    ]
+    assert cli_main(args) == 0
+    assert 'adjoint model: success' in capsys.readouterr().out
+    summary = yaml.safe_load((out / 'summary.yaml').read_text())
+    assert summary['model'] == 'adjoint'
+    assert summary['evaluation'][0]['outside_gaps']['mean_nees_state'] < 20.0
+    # the thrust profile is known only where measured: 60 ... 160 s
+    assert len(_rows(out / 'report_times.csv')) == 11

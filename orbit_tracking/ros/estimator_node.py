@@ -25,7 +25,8 @@ Example::
 The module is a little over the project's ~600-line guide: about 220 lines of it are the
 node's parameter declarations (each with its description and range); the estimation itself
 is one call into :func:`orbit_tracking.core.estimation.estimator.estimate` (with
-``model: rocket``, :func:`orbit_tracking.core.dynamics.solve.rocket_window`).
+``model: rocket`` or ``adjoint``,
+:func:`orbit_tracking.core.dynamics.solve.dynamics_window`).
 """
 
 from __future__ import annotations
@@ -46,7 +47,7 @@ from std_srvs.srv import Trigger
 
 from orbit_tracking.core.data.buffer import ObservationBuffer
 from orbit_tracking.core.data.observations import Observations
-from orbit_tracking.core.dynamics.solve import RocketConfig, rocket_window
+from orbit_tracking.core.dynamics.solve import RocketConfig, dynamics_window
 from orbit_tracking.core.errors import OrbitTrackingError
 from orbit_tracking.core.estimation.bias_files import load_bias_declaration, station_fields
 from orbit_tracking.core.estimation.config import KNOT_METHODS, EstimatorConfig
@@ -80,7 +81,7 @@ from orbit_tracking.ros.parameters import declare
 from orbit_tracking.ros.runner import run_node
 from orbit_tracking.ros.station_inputs import StationInputs
 
-MODELS = ('spline', 'rocket')
+MODELS = ('spline', 'rocket', 'adjoint')
 """The trajectory models of the ``model`` parameter."""
 
 __all__ = ['EstimatorNode', 'main']
@@ -221,10 +222,11 @@ class EstimatorNode(StationInputs):
             self,
             'model',
             'spline',
-            "Trajectory model: 'spline' (the seed's B-spline with sparse knots) or 'rocket' "
+            "Trajectory model: 'spline' (the seed's B-spline with sparse knots), 'rocket' "
             "(seed 003's rocket-equation flight, gravity + thrust along the velocity, fitted "
             "to each window's raw measurements; Earth-centred world frames 'eci' or 'earth'; "
-            'telemetry unused).',
+            "telemetry unused) or 'adjoint' (seed 003's adjoint assimilation of a free thrust "
+            'profile, started from the rocket fit).',
             read_only=True,
         )
         if self.model not in MODELS:
@@ -652,7 +654,7 @@ class EstimatorNode(StationInputs):
     def _rocket_config(self) -> RocketConfig:
         if self.world_frame not in ('eci', 'earth'):
             raise OrbitTrackingError(
-                f"model 'rocket' needs an Earth-centred world frame ('eci' or 'earth'); the "
+                f"model {self.model!r} needs an Earth-centred world frame ('eci' or 'earth'); the "
                 f'inputs are in {self.world_frame or "no frame yet"!r}'
             )
         return RocketConfig(rotating=self.world_frame == 'earth')
@@ -665,8 +667,10 @@ class EstimatorNode(StationInputs):
         ids = None if self.target_id < 0 else [self.target_id]
         try:
             cfg = self._window_config(obs)
-            if self.model == 'rocket':
-                est = rocket_window(obs, t0, t1, ids, cfg.biases, self._rocket_config())
+            if self.model != 'spline':
+                est = dynamics_window(
+                    obs, t0, t1, self.model, ids, cfg.biases, self._rocket_config()
+                )
             else:
                 est = estimate(obs, t0, t1, cfg, ids, self.previous or None)
             if not est.success:  # inconsistent or not converged: withheld, never final

@@ -1,5 +1,6 @@
-"""``orbit-tracking estimate --model rocket``: one fit of seed 003's rocket model over the
-whole bag (:func:`~orbit_tracking.core.dynamics.solve.fit_rocket`), with the files of the
+"""``orbit-tracking estimate --model rocket|adjoint``: one fit of seed 003's rocket model
+(or its adjoint assimilation) over the whole bag
+(:func:`~orbit_tracking.core.dynamics.solve.fit_model`), with the files of the
 spline estimate (``trajectory.csv``, ``biases.csv``, ``biases_by_window.csv``, ``bag/``,
 ``summary.yaml``; a fit that is not a success writes ``trajectory_failed.csv`` instead, and
 no bag) and the contest's outputs: ``report_times.csv`` (states and thrust at
@@ -23,6 +24,7 @@ import numpy as np
 import yaml
 
 from orbit_tracking.core.data.observations import Observations
+from orbit_tracking.core.dynamics.adjoint import AdjointFit
 from orbit_tracking.core.dynamics.fit import DynamicsFit
 from orbit_tracking.core.dynamics.observability import (
     ESTIMATED,
@@ -30,7 +32,7 @@ from orbit_tracking.core.dynamics.observability import (
     classify,
     weakest_direction,
 )
-from orbit_tracking.core.dynamics.solve import RocketConfig, fit_rocket
+from orbit_tracking.core.dynamics.solve import RocketConfig, fit_model
 from orbit_tracking.core.errors import OrbitTrackingError
 from orbit_tracking.core.estimation.bias_files import (
     BiasDeclaration,
@@ -58,8 +60,9 @@ from orbit_tracking.tools.evaluation import bias_lines, evaluate_target, evaluat
 __all__ = ['DynamicsReport', 'estimate_dynamics_bag', 'parse_report_times']
 
 REPORT_MARGIN_S = 10.0
-"""Report times up to this far outside the measured span are given (the model's flight
-extrapolates, with its covariance); farther ones are left out."""
+"""Report times up to this far outside the measured span are given by the rocket model
+(its flight extrapolates, with its covariance); farther ones are left out, and so are all
+outside the span for the adjoint model (its thrust profile is known only there)."""
 
 
 def parse_report_times(text: str) -> np.ndarray:
@@ -84,7 +87,8 @@ def parse_report_times(text: str) -> np.ndarray:
 class DynamicsReport:
     """Outcome of :func:`estimate_dynamics_bag`."""
 
-    fit: DynamicsFit
+    fit: DynamicsFit | AdjointFit
+    model: str
     observability: list[ParameterObservability]
     weakest: list[str]
     warnings: list[str]
@@ -97,18 +101,17 @@ class DynamicsReport:
     def lines(self) -> list[str]:
         f = self.fit
         out = [
-            f'rocket model: {"success" if f.success else "FAILED"} ({f.message}); '
+            f'{self.model} model: {"success" if f.success else "FAILED"} ({f.message}); '
             f'{f.iterations} iterations; chi2/dof {f.chi2_dof:.3f} ({f.dof} dof); '
             f'{sum(f.used.values())} measured values used, {sum(f.rejected.values())} '
             f'rejected; {f.solve_time:.1f} s; start: {self.start}',
         ]
         for tid, tf in sorted(f.targets.items()):
-            c, tau = tf.theta[6], tf.theta[7]
-            sig = np.sqrt(np.diag(tf.covariance))
+            a, sa = tf.thrust(np.array([tf.t0, tf.t1]))
             out.append(
-                f'target {tid}: {tf.t0:.3f}-{tf.t1:.3f} s; exhaust speed {c:.1f} +- '
-                f'{sig[6]:.2g} m/s, mass time {tau:.2f} +- {sig[7]:.2g} s at '
-                f'{tf.model.epoch:.3f} s'
+                f'target {tid}: {tf.t0:.3f}-{tf.t1:.3f} s; thrust acceleration '
+                f'{a[0]:.3f} +- {sa[0]:.2g} m/s^2 at the start, {a[1]:.3f} +- {sa[1]:.2g} '
+                f'at the end'
             )
         out += self.warnings
         out += self.weakest
@@ -155,7 +158,9 @@ def _bias_estimates(
     return out
 
 
-def _write_report_times(path: Path, fit: DynamicsFit, times: np.ndarray, ref_ns: int) -> int:
+def _write_report_times(
+    path: Path, fit: DynamicsFit | AdjointFit, times: np.ndarray, ref_ns: int
+) -> int:
     cols = [
         'time',
         'target_id',
@@ -180,9 +185,13 @@ def _write_report_times(path: Path, fit: DynamicsFit, times: np.ndarray, ref_ns:
         w.writerow(cols)
         for tid, tf in sorted(fit.targets.items()):
             t = times[(times >= tf.t0 - REPORT_MARGIN_S) & (times <= tf.t1 + REPORT_MARGIN_S)]
+            try:
+                x, cov = tf.states(t)
+            except ValueError:  # the adjoint's thrust spline ends with the measurements
+                t = times[(times >= tf.t0) & (times <= tf.t1)]
+                x, cov = tf.states(t)
             if not t.size:
                 continue
-            x, cov = tf.states(t)
             a, sa = tf.thrust(t)
             sd = np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0.0))
             for i in range(t.size):
@@ -200,7 +209,9 @@ def _write_report_times(path: Path, fit: DynamicsFit, times: np.ndarray, ref_ns:
     return n
 
 
-def _write_residuals(path: Path, fit: DynamicsFit, ref_ns: int) -> dict[str, dict[str, float]]:
+def _write_residuals(
+    path: Path, fit: DynamicsFit | AdjointFit, ref_ns: int
+) -> dict[str, dict[str, float]]:
     """``residuals.csv`` (time, station, target_id, field, whitened residual; empty where
     not measured or rejected) and the RMS per station and field."""
     rms: dict[str, dict[str, float]] = {}
@@ -235,6 +246,7 @@ def estimate_dynamics_bag(
     out: str | Path,
     biases: BiasDeclaration | str | None = None,
     report_times: np.ndarray | None = None,
+    model: str = 'rocket',
     output_step: float = 1.0,
     progress: bool = True,
 ) -> DynamicsReport:
@@ -279,7 +291,7 @@ def estimate_dynamics_bag(
                 'to see the uncertainty they add'
             )
     obs = Observations(obs.stations, {}, obs.fixes)
-    fit = fit_rocket(obs, biases=declared, config=cfg)
+    fit = fit_model(obs, model, biases=declared, config=cfg)
     classes = classify(fit)
     weakest = [weakest_direction(fit, obs, tid) for tid in sorted(fit.targets)]
     bias_rows = _bias_estimates(fit, classes)
@@ -314,7 +326,7 @@ def estimate_dynamics_bag(
         msgs = trajectory_messages(tracks, main, ctx.world_frame or 'earth', tb)
         files.append(write_output_bag(out / 'bag', msgs))
     report = DynamicsReport(
-        fit, classes, weakest, warnings, files, counts, tuple(bias_rows), start=start
+        fit, model, classes, weakest, warnings, files, counts, tuple(bias_rows), start=start
     )
     for tid, (tt, x, cov) in tracks.items():
         if tid in ctx.truth and tt.size:
@@ -324,7 +336,7 @@ def estimate_dynamics_bag(
     summary = {
         'bag': str(bag),
         'scenario': ctx.scenario,
-        'model': 'rocket',
+        'model': model,
         'start': start,
         'config': {
             'output_step': output_step,

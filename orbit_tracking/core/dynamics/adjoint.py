@@ -75,6 +75,7 @@ from orbit_tracking.core.models.systematic import BiasParameter
 
 __all__ = [
     'AdjointConfig',
+    'adjoint_bound',
     'AdjointFit',
     'AdjointFlight',
     'AdjointProblem',
@@ -474,3 +475,48 @@ def fit_adjoint(
         evaluations=evaluations,
         optimizer_message=opt_message,
     )
+
+
+def adjoint_bound(
+    obs: Observations,
+    truth: Mapping[int, tuple[float, ArrayLike, ThrustStart]],
+    biases: Sequence[BiasParameter] = (),
+    config: AdjointConfig | None = None,
+) -> dict[int, AdjointFlight]:
+    """The Cramér–Rao bound of the adjoint model: its information (every measured value,
+    the bias priors at their ``prior``) at the true state and the thrust spline closest to
+    the true thrust (``truth`` as :func:`fit_adjoint`'s ``initial``), inverted; each
+    target's flight there with that covariance, so that :meth:`AdjointFlight.states`
+    gives the bound of the states."""
+    cfg = config or AdjointConfig()
+    models, starts = {}, {}
+    for tid, (epoch, state, thrust) in truth.items():
+        x0 = np.asarray(state, dtype=np.float64).reshape(6)
+        last = max(
+            float(s.table.time[s.table.target_id == tid].max())
+            for s in obs.stations
+            if np.any(s.table.target_id == tid)
+        )
+        models[tid] = cfg.model(float(epoch), last)
+        starts[tid] = np.concatenate([x0, _start_coefficients(models[tid], x0, thrust)])
+    prob = AdjointProblem(obs, models, biases, cfg.smoothness_sigma)
+    p = np.concatenate(
+        [starts[t] for t in prob.tids] + [np.array([prob.biases[i].prior for i in prob.free])]
+    )
+    _, jac, _ = prob.jacobian(p)
+    n = jac.T @ jac
+    d = np.sqrt(np.maximum(np.diag(n), 1e-300))
+    cov = np.linalg.pinv(n / np.outer(d, d), rcond=1e-14, hermitian=True) / np.outer(d, d)
+    out = {}
+    for tid in prob.tids:
+        k, n_p = prob.offsets[tid], models[tid].n_parameters
+        tt = prob.times[tid]
+        out[tid] = AdjointFlight(
+            tid,
+            models[tid],
+            p[k : k + n_p],
+            cov[k : k + n_p, k : k + n_p],
+            float(tt[0]),
+            float(tt[-1]),
+        )
+    return out

@@ -28,6 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from orbit_tracking.core.data.observations import Observations
+from orbit_tracking.core.dynamics.adjoint import AdjointFit
 from orbit_tracking.core.dynamics.fit import DynamicsFit
 
 __all__ = [
@@ -83,7 +84,7 @@ def data_bounds(information: FloatArray) -> FloatArray:
     return np.sqrt(var) / d
 
 
-def classify(fit: DynamicsFit) -> list[ParameterObservability]:
+def classify(fit: DynamicsFit | AdjointFit) -> list[ParameterObservability]:
     """Every parameter of ``fit`` with its class (module docstring)."""
     if not np.all(np.isfinite(fit.information)):
         bound = np.full(len(fit.names), math.inf)
@@ -93,7 +94,7 @@ def classify(fit: DynamicsFit) -> list[ParameterObservability]:
     n_traj = len(fit.names) - fit.prior_sigma.size
     values = np.concatenate(
         [
-            *(t.theta for _, t in sorted(fit.targets.items())),
+            *(fit.targets[t].theta for t in sorted(fit.targets)),
             fit.bias_values[[i for i, b in enumerate(fit.biases) if b.estimate]],
         ]
     )
@@ -115,15 +116,17 @@ def classify(fit: DynamicsFit) -> list[ParameterObservability]:
     return out
 
 
-def weakest_direction(fit: DynamicsFit, obs: Observations, target_id: int) -> str:
+def weakest_direction(fit: DynamicsFit | AdjointFit, obs: Observations, target_id: int) -> str:
     """The least-known direction of ``target_id``'s position at mid-flight, in words."""
     tf = fit.targets[target_id]
     tm = 0.5 * (tf.t0 + tf.t1)
     f = tf.model.propagate(tf.theta, [tm])
     assert f.sensitivity is not None
-    gp = f.sensitivity[0, :3]  # (3, 8)
-    k = sorted(fit.targets).index(target_id)
-    pk = fit.covariance[8 * k : 8 * k + 8, 8 * k : 8 * k + 8]
+    gp = f.sensitivity[0, :3]  # (3, n) for the target's n parameters
+    ids = sorted(fit.targets)
+    lo = sum(len(fit.targets[t].theta) for t in ids[: ids.index(target_id)])
+    sl = slice(lo, lo + len(tf.theta))
+    pk = fit.covariance[sl, sl]
     if not np.all(np.isfinite(pk)):
         return f'target {target_id}: no covariance (the normal matrix is singular)'
     w, v = np.linalg.eigh(gp @ pk @ gp.T)
@@ -150,7 +153,7 @@ def weakest_direction(fit: DynamicsFit, obs: Observations, target_id: int) -> st
         parts.append(', '.join(angles))
     n_traj = len(fit.names) - fit.prior_sigma.size
     if fit.prior_sigma.size and sig > 0.0:
-        cross = u @ gp @ fit.covariance[8 * k : 8 * k + 8, n_traj:]
+        cross = u @ gp @ fit.covariance[sl, n_traj:]
         sb = np.sqrt(np.maximum(np.diag(fit.covariance)[n_traj:], 1e-300))
         corr = cross / (sig * sb)
         strong = [(fit.names[n_traj + j], float(c)) for j, c in enumerate(corr) if abs(c) > 0.5]

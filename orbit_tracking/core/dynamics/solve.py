@@ -14,6 +14,12 @@ from numpy.typing import NDArray
 
 from orbit_tracking.core import frames
 from orbit_tracking.core.data.observations import Observations
+from orbit_tracking.core.dynamics.adjoint import (
+    AdjointConfig,
+    AdjointFit,
+    fit_adjoint,
+    initial_from_rocket,
+)
 from orbit_tracking.core.dynamics.fit import DynamicsFit, FitConfig, fit_dynamics
 from orbit_tracking.core.dynamics.observability import ESTIMATED, classify
 from orbit_tracking.core.dynamics.rocket import FlightError, RocketModel
@@ -22,9 +28,13 @@ from orbit_tracking.core.errors import OrbitTrackingError
 from orbit_tracking.core.estimation.results import BiasEstimate, Estimate, TargetSolution
 from orbit_tracking.core.models.systematic import BiasParameter
 
-__all__ = ['RocketConfig', 'fit_rocket', 'rocket_window']
+__all__ = ['DYNAMICS_MODELS', 'RocketConfig', 'dynamics_window', 'fit_model', 'fit_rocket']
 
 FloatArray = NDArray[np.float64]
+
+DYNAMICS_MODELS: tuple[str, ...] = ('rocket', 'adjoint')
+"""The models with dynamics: the rocket-equation flight, and the seed's adjoint
+assimilation of a free thrust profile (started from the rocket fit)."""
 
 SCOUT_ITERATIONS = 12
 """Levenberg-Marquardt steps each start of a search gets before the best goes on."""
@@ -134,21 +144,54 @@ def fit_rocket(
         raise OrbitTrackingError(f'the rocket fit failed: {exc}') from exc
 
 
-def rocket_window(
+def fit_model(
+    obs: Observations,
+    model: str = 'rocket',
+    target_ids: Sequence[int] | None = None,
+    biases: Sequence[BiasParameter] = (),
+    config: RocketConfig | None = None,
+    adjoint: AdjointConfig | None = None,
+) -> DynamicsFit | AdjointFit:
+    """:func:`fit_rocket`, or for ``model='adjoint'`` the adjoint assimilation started
+    from it (its gravity settings are the rocket config's; the rocket fit need not be a
+    success to start from).
+
+    Raises
+    ------
+    ValueError
+        An unknown model.
+    OrbitTrackingError
+        No fit could start.
+    """
+    if model not in DYNAMICS_MODELS:
+        raise ValueError(f'model must be one of {", ".join(DYNAMICS_MODELS)}; got {model!r}')
+    cfg = config or RocketConfig()
+    rocket = fit_rocket(obs, target_ids, biases, cfg)
+    if model == 'rocket':
+        return rocket
+    acfg = replace(adjoint or AdjointConfig(), gm=cfg.gm, j2=cfg.j2, rotating=cfg.rotating)
+    try:
+        return fit_adjoint(obs, initial_from_rocket(rocket.targets), biases, acfg)
+    except FlightError as exc:
+        raise OrbitTrackingError(f'the adjoint assimilation failed: {exc}') from exc
+
+
+def dynamics_window(
     obs: Observations,
     t0: float,
     t1: float,
+    model: str = 'rocket',
     target_ids: Sequence[int] | None = None,
     biases: Sequence[BiasParameter] = (),
     config: RocketConfig | None = None,
 ) -> Estimate:
-    """:func:`fit_rocket` on the rows in ``[t0, t1]``, reported as a window
+    """:func:`fit_model` on the rows in ``[t0, t1]``, reported as a window
     :class:`~orbit_tracking.core.estimation.results.Estimate` (what the estimator node
-    publishes with ``model: rocket``). Its targets are :class:`~.fit.TargetFlight` objects:
+    publishes with ``model: rocket`` or ``adjoint``). Its targets are the fitted flights:
     they offer what the node and the stitcher use of a solution (``t0``, ``t1``,
     ``states``), not the spline's coefficients, so they cannot seed a spline window.
     A bias's status is its observability class."""
-    fit = fit_rocket(obs.window(t0, t1), target_ids, biases, config)
+    fit = fit_model(obs.window(t0, t1), model, target_ids, biases, config)
     classes = {p.name: p for p in classify(fit)}
     rows = []
     for b, v in zip(fit.biases, fit.bias_values, strict=True):

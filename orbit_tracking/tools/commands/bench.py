@@ -88,7 +88,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         )
         text = seed003_tables(srows, args.seeds) + footer(t0)
         if plots:
-            text += f' Error plots (seed 0): `{plots}/<scenario>_<biases>_rocket.png`.'
+            text += f' Error plots (seed 0): `{plots}/<scenario>_<biases>_<rocket|adjoint>.png`.'
         print(text)
         if args.write_docs:
             write_docs(args.docs, 'seed003', text)

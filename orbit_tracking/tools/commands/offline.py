@@ -61,10 +61,12 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
             return 2
     out = prepare_output_folder(args.out, args.force, [bag])
     t0 = time.monotonic()
-    if args.model == 'rocket':
+    if args.model != 'spline':
         from orbit_tracking.tools.estimate_dynamics import estimate_dynamics_bag
 
-        dyn = estimate_dynamics_bag(bag, out, biases, times, args.output_step, not args.quiet)
+        dyn = estimate_dynamics_bag(
+            bag, out, biases, times, args.model, args.output_step, not args.quiet
+        )
         for line in dyn.lines():
             print(line)
         print(f'wrote {", ".join(str(f) for f in dyn.files)} ({time.monotonic() - t0:.1f} s)')
@@ -72,7 +74,7 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     if times is not None:
         print(
             'orbit-tracking estimate: error: --report-times needs a dynamics model '
-            '(--model rocket)',
+            '(--model rocket or adjoint)',
             file=sys.stderr,
         )
         return 2
@@ -195,17 +197,18 @@ def add_estimate(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
     )
     s.add_argument(
         '--model',
-        choices=('spline', 'rocket'),
+        choices=('spline', 'rocket', 'adjoint'),
         default='spline',
-        help="trajectory model: the seed's B-spline in sliding windows (default), or seed "
-        "003's rocket-equation flight fitted to the whole bag (Earth-centred frames; "
-        'telemetry unused; exit code 1 when the fit is not a success)',
+        help="trajectory model: the seed's B-spline in sliding windows (default); seed "
+        "003's rocket-equation flight fitted to the whole bag; or seed 003's adjoint "
+        'assimilation of a free thrust profile, started from the rocket fit (both: '
+        'Earth-centred frames, telemetry unused, exit code 1 when the fit is not a success)',
     )
     s.add_argument(
         '--report-times',
         metavar='A:B:STEP|T1,T2,...',
         default='',
-        help='with --model rocket: also write report_times.csv, the states and thrust '
+        help='with --model rocket or adjoint: also write report_times.csv, the states and thrust '
         'acceleration with sigma at these times (both ends included), e.g. 50:170:10',
     )
     s.add_argument(
