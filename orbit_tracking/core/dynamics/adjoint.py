@@ -66,11 +66,15 @@ from scipy.optimize import minimize
 from orbit_tracking.core import frames
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.dynamics.adjoint_problem import AdjointProblem
-from orbit_tracking.core.dynamics.fit import TargetFlight
+from orbit_tracking.core.dynamics.fit import (
+    TargetFlight,
+    covariance_verdict,
+    fit_tables,
+    gate_pass,
+)
 from orbit_tracking.core.dynamics.rocket import FlightError
 from orbit_tracking.core.dynamics.thrust_spline import ThrustControl, ThrustSplineModel
 from orbit_tracking.core.errors import OrbitTrackingError
-from orbit_tracking.core.estimation.verdict import judge
 from orbit_tracking.core.models.systematic import BiasParameter
 
 __all__ = [
@@ -386,50 +390,28 @@ def fit_adjoint(
         evaluations += ev
         if decrement > cfg.max_unconverged_decrement:
             break  # far from any optimum: its residuals say nothing about outliers
-        bad = [
-            g.keep & (np.abs(np.nan_to_num(r, nan=0.0)) > cfg.gate_sigma)
-            for r, g in zip(prob.residuals(p), prob.groups, strict=True)
-        ]
-        share = max(
-            float(np.max(b.sum(axis=0) / np.maximum(np.isfinite(g.values).sum(axis=0), 1)))
-            for b, g in zip(bad, prob.groups, strict=True)
+        refused, rejected_any = gate_pass(
+            prob.residuals(p), prob.groups, cfg.gate_sigma, cfg.max_gate_share
         )
-        if share > cfg.max_gate_share:  # not outliers: the model does not fit the data
-            refused = share
+        if refused or not rejected_any:
             break
-        if not any(np.any(b) for b in bad):
-            break
-        for b, g in zip(bad, prob.groups, strict=True):
-            g.keep &= ~b
-    rejected: Counter[tuple[str, str]] = Counter()
-    for g in prob.groups:
-        out = int(np.sum(np.isfinite(g.values) & ~g.keep))
-        if out:
-            rejected[(g.station, 'residual_gate')] += out
     res = prob.residuals(p)
     prior = prob._prior(p)
     cost = sum(float(np.nansum(r**2)) for r in res) + float(prior @ prior)
     rows = int(sum(int(g.keep.sum()) for g in prob.groups))
     dof = rows - prob.n_traj  # the bias prior rows and columns cancel
     chi2_dof = cost / max(dof, 1)
-    d = np.sqrt(np.maximum(np.diag(n), 1e-300))
-    try:  # inverted Jacobi-scaled: the units of the parameters differ by many decades
-        cov = np.linalg.inv(n / np.outer(d, d)) / np.outer(d, d)
-        singular = not np.all(np.isfinite(cov)) or np.linalg.cond(n / np.outer(d, d)) > 1e13
-    except np.linalg.LinAlgError:
-        cov, singular = np.full_like(n, np.nan), True
-    verdict = judge(
-        converged,
-        chi2_dof,
+    cov, verdict = covariance_verdict(
+        n,
+        cost,
         dof,
+        converged,
+        decrement,
+        refused,
+        bool(np.all(np.isfinite(p))),
         cfg.max_chi2_dof,
-        singular=singular,
-        gate_refused=refused,
-        finite=bool(np.all(np.isfinite(p))),
-        decrement=decrement,
-        max_decrement=cfg.max_unconverged_decrement,
+        cfg.max_unconverged_decrement,
     )
-    cov = cov * verdict.covariance_scale
     targets = {}
     for tid in prob.tids:
         k, n_p = prob.offsets[tid], models[tid].n_parameters
@@ -438,17 +420,7 @@ def fit_adjoint(
         targets[tid] = AdjointFlight(
             tid, models[tid], p[sl].copy(), cov[sl, sl].copy(), float(tt[0]), float(tt[-1])
         )
-    used: Counter[str] = Counter()
-    resid: dict[str, tuple[FloatArray, tuple[str, ...], FloatArray, FloatArray]] = {}
-    for rr, g in zip(res, prob.groups, strict=True):
-        used[g.station] += int(g.keep.sum())
-        ids = np.full(g.time.size, float(g.target))
-        prev = resid.get(g.station)
-        if prev is not None:
-            rr = np.vstack([prev[2], rr])
-            ids = np.concatenate([prev[3], ids])
-        t = g.time if prev is None else np.concatenate([prev[0], g.time])
-        resid[g.station] = (t, g.fields, rr, ids)
+    used, rejected, resid = fit_tables(res, prob.groups)
     names = tuple(f'{t}/{n}' for t in prob.tids for n in models[t].names) + tuple(
         f'{prob.biases[i].station}/{prob.biases[i].name}' for i in prob.free
     )

@@ -34,11 +34,20 @@ from numpy.typing import NDArray
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.dynamics.rocket import Flight, FlightError, RocketModel
 from orbit_tracking.core.errors import OrbitTrackingError
-from orbit_tracking.core.estimation.verdict import judge
+from orbit_tracking.core.estimation.verdict import Verdict, judge
 from orbit_tracking.core.models.measurements import StationPose, predict, residual
 from orbit_tracking.core.models.systematic import CLOCK, BiasModel, BiasParameter
 
-__all__ = ['DynamicsFit', 'FitConfig', 'TargetFlight', 'bound_at', 'fit_dynamics']
+__all__ = [
+    'DynamicsFit',
+    'FitConfig',
+    'TargetFlight',
+    'bound_at',
+    'covariance_verdict',
+    'fit_dynamics',
+    'fit_tables',
+    'gate_pass',
+]
 
 FloatArray = NDArray[np.float64]
 
@@ -324,6 +333,94 @@ def _solve(
             return beta, it, False, decrement, n, g, res
 
 
+Residuals = dict[str, tuple[FloatArray, tuple[str, ...], FloatArray, FloatArray]]
+
+
+def gate_pass(
+    res: Sequence[FloatArray], groups: Sequence[_Group], gate_sigma: float, max_share: float
+) -> tuple[float, bool]:
+    """One pass of the residual gate over the kept values of ``groups`` (whitened
+    residuals ``res``, one (n, k) array a group): ``(refused, rejected)``. It refuses
+    (``refused`` = the share, nothing rejected) when it would take more than ``max_share``
+    of one group's field: those are not outliers, the model does not fit the data; else
+    it rejects every value beyond ``gate_sigma`` (``rejected``: any was)."""
+    bad = [
+        g.keep & (np.abs(np.nan_to_num(r, nan=0.0)) > gate_sigma)
+        for r, g in zip(res, groups, strict=True)
+    ]
+    share = max(
+        float(np.max(b.sum(axis=0) / np.maximum(np.isfinite(g.values).sum(axis=0), 1)))
+        for b, g in zip(bad, groups, strict=True)
+    )
+    if share > max_share:
+        return share, False
+    for b, g in zip(bad, groups, strict=True):
+        g.keep &= ~b
+    return 0.0, any(bool(np.any(b)) for b in bad)
+
+
+def fit_tables(
+    res: Sequence[FloatArray], groups: Sequence[_Group]
+) -> tuple[Counter[str], Counter[tuple[str, str]], Residuals]:
+    """Values used per station, values rejected per (station, ``residual_gate``), and the
+    residuals per station (:attr:`DynamicsFit.residuals`)."""
+    used: Counter[str] = Counter()
+    rejected: Counter[tuple[str, str]] = Counter()
+    resid: Residuals = {}
+    for rr, g in zip(res, groups, strict=True):
+        used[g.station] += int(g.keep.sum())
+        out = int(np.sum(np.isfinite(g.values) & ~g.keep))
+        if out:
+            rejected[(g.station, 'residual_gate')] += out
+        ids = np.full(g.time.size, float(g.target))
+        prev = resid.get(g.station)
+        if prev is None:
+            resid[g.station] = (g.time, g.fields, rr, ids)
+        else:
+            resid[g.station] = (
+                np.concatenate([prev[0], g.time]),
+                g.fields,
+                np.vstack([prev[2], rr]),
+                np.concatenate([prev[3], ids]),
+            )
+    return used, rejected, resid
+
+
+def covariance_verdict(
+    n: FloatArray,
+    cost: float,
+    dof: int,
+    converged: bool,
+    decrement: float,
+    refused: float,
+    finite: bool,
+    max_chi2_dof: float,
+    max_unconverged_decrement: float,
+) -> tuple[FloatArray, Verdict]:
+    """The inverse of the normal matrix ``n`` (Jacobi-scaled: the units of the parameters
+    differ by many decades) and the verdict of
+    :func:`~orbit_tracking.core.estimation.verdict.judge`, the covariance scaled as it
+    says."""
+    d = np.sqrt(np.maximum(np.diag(n), 1e-300))
+    try:
+        cov = np.linalg.inv(n / np.outer(d, d)) / np.outer(d, d)
+        singular = not np.all(np.isfinite(cov)) or np.linalg.cond(n / np.outer(d, d)) > 1e13
+    except np.linalg.LinAlgError:
+        cov, singular = np.full_like(n, np.nan), True
+    verdict = judge(
+        converged,
+        cost / max(dof, 1),
+        dof,
+        max_chi2_dof,
+        singular=singular,
+        gate_refused=refused,
+        finite=finite,
+        decrement=decrement,
+        max_decrement=max_unconverged_decrement,
+    )
+    return cov * verdict.covariance_scale, verdict
+
+
 def fit_dynamics(
     obs: Observations,
     initial: Mapping[int, tuple[RocketModel, FloatArray]],
@@ -353,7 +450,6 @@ def fit_dynamics(
         [np.asarray(initial[t][1], dtype=np.float64) for t in prob.tids]
         + [np.array([prob.biases[i].prior for i in prob.free])]
     )
-    rejected: Counter[tuple[str, str]] = Counter()
     iterations = 0
     if prob.free:  # the flights first, the biases held: they can trade against a poor start
         held = _Problem(obs, prob.models, [replace(b, estimate=False) for b in prob.biases])
@@ -366,51 +462,26 @@ def fit_dynamics(
         iterations += its
         if decrement > cfg.max_unconverged_decrement:
             break  # far from any optimum: its residuals say nothing about outliers
-        bad = [
-            g.keep & (np.abs(np.nan_to_num(r, nan=0.0)) > cfg.gate_sigma)
-            for r, g in zip(res, prob.groups, strict=True)
-        ]
-        share = max(
-            float(np.max(b.sum(axis=0) / np.maximum(np.isfinite(g.values).sum(axis=0), 1)))
-            for b, g in zip(bad, prob.groups, strict=True)
-        )
-        if share > cfg.max_gate_share:  # not outliers: the model does not fit the data
-            refused = share
+        refused, rejected_any = gate_pass(res, prob.groups, cfg.gate_sigma, cfg.max_gate_share)
+        if refused or not rejected_any:
             break
-        if not any(np.any(b) for b in bad):
-            break
-        for b, g in zip(bad, prob.groups, strict=True):
-            g.keep &= ~b
-    for g in prob.groups:
-        out = int(np.sum(np.isfinite(g.values) & ~g.keep))
-        if out:
-            rejected[(g.station, 'residual_gate')] += out
-    gate_refused = refused
-    rows = prob.n_rows
     r = prob.vector(res, beta)
     cost = float(r @ r)
-    dof = rows - prob.n_traj - 0  # the bias prior rows and columns cancel
+    dof = prob.n_rows - prob.n_traj  # the bias prior rows and columns cancel
     chi2_dof = cost / max(dof, 1)
     prior_info = np.zeros(prob.n)
     prior_info[prob.n_traj :] = [1.0 / prob.biases[i].sigma ** 2 for i in prob.free]
-    d = np.sqrt(np.maximum(np.diag(n), 1e-300))
-    try:  # inverted Jacobi-scaled: the units of the parameters differ by many decades
-        cov = np.linalg.inv(n / np.outer(d, d)) / np.outer(d, d)
-        singular = not np.all(np.isfinite(cov)) or np.linalg.cond(n / np.outer(d, d)) > 1e13
-    except np.linalg.LinAlgError:
-        cov, singular = np.full_like(n, np.nan), True
-    verdict = judge(
-        converged,
-        chi2_dof,
+    cov, verdict = covariance_verdict(
+        n,
+        cost,
         dof,
+        converged,
+        decrement,
+        refused,
+        bool(np.all(np.isfinite(beta))),
         cfg.max_chi2_dof,
-        singular=singular,
-        gate_refused=gate_refused,
-        finite=bool(np.all(np.isfinite(beta))),
-        decrement=decrement,
-        max_decrement=cfg.max_unconverged_decrement,
+        cfg.max_unconverged_decrement,
     )
-    cov = cov * verdict.covariance_scale
     names = tuple(f'{t}/{p}' for t in prob.tids for p in prob.models[t].names) + tuple(
         f'{prob.biases[i].station}/{prob.biases[i].name}' for i in prob.free
     )
@@ -421,21 +492,7 @@ def fit_dynamics(
         targets[tid] = TargetFlight(
             tid, prob.models[tid], beta[sl].copy(), cov[sl, sl].copy(), float(tt[0]), float(tt[-1])
         )
-    used: Counter[str] = Counter()
-    resid: dict[str, tuple[FloatArray, tuple[str, ...], FloatArray, FloatArray]] = {}
-    for rr, g in zip(res, prob.groups, strict=True):
-        used[g.station] += int(g.keep.sum())
-        prev = resid.get(g.station)
-        ids = np.full(g.time.size, float(g.target))
-        if prev is None:
-            resid[g.station] = (g.time, g.fields, rr, ids)
-        else:
-            resid[g.station] = (
-                np.concatenate([prev[0], g.time]),
-                g.fields,
-                np.vstack([prev[2], rr]),
-                np.concatenate([prev[3], ids]),
-            )
+    used, rejected, resid = fit_tables(res, prob.groups)
     message = 'converged' if verdict.success else '; '.join(verdict.reasons)
     return DynamicsFit(
         success=verdict.success,
