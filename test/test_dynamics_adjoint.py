@@ -5,10 +5,10 @@ on q2's noisy ones against its sigma and the baseline, and a misfit that is not 
 from __future__ import annotations
 
 import dataclasses
-from functools import cache
 
 import numpy as np
 import pytest
+from test_dynamics_fit import _noise_free, _run
 
 from orbit_tracking.core.data.observations import FixSeries, Observations, StationObservations
 from orbit_tracking.core.dynamics.adjoint import (
@@ -22,13 +22,9 @@ from orbit_tracking.core.dynamics.rocket import RocketModel
 from orbit_tracking.core.dynamics.solve import RocketConfig, fit_rocket
 from orbit_tracking.core.dynamics.start import start_from_fixes
 from orbit_tracking.core.dynamics.thrust_spline import ThrustControl, ThrustSplineModel
-from orbit_tracking.core.models.measurements import predict
-from orbit_tracking.core.models.systematic import BiasModel, BiasParameter
-from orbit_tracking.core.sim.scenario import build_targets, load_scenario, truth_biases
-from orbit_tracking.core.sim.simulator import SimulationResult, simulate
-from orbit_tracking.core.sim.stream import feed_simulation
-from orbit_tracking.core.triangulation.intersection import Gates
-from orbit_tracking.core.triangulation.pipeline import TriangulationPipeline, fix_series
+from orbit_tracking.core.models.systematic import BiasParameter
+from orbit_tracking.core.sim.scenario import build_targets, load_scenario
+from orbit_tracking.core.sim.simulator import SimulationResult
 
 GM = 3.986005e14
 BIASES = (
@@ -37,34 +33,6 @@ BIASES = (
     BiasParameter('sat09', 'los_beta', 2e-5, 1e-4),
     BiasParameter('sat09', 'los_alpha', 1e-5, 1e-4, estimate=False),
 )
-
-
-@cache
-def _run(name: str) -> tuple[SimulationResult, Observations]:
-    result = simulate(load_scenario(name))
-    pipe = TriangulationPipeline(gates=Gates(miss_probability=1.0))
-    feed_simulation(pipe, result)
-    return result, Observations.from_simulation(result, fix_series(pipe.flush()))
-
-
-def _noise_free(name: str) -> Observations:
-    """The scenario's rows with their values replaced by the exact (biased) model."""
-    sc = load_scenario(name)
-    _, obs = _run(name)
-    targets = build_targets(sc)
-    truth = truth_biases(sc)
-    stations = []
-    for st in obs.stations:
-        tab = st.table
-        vals = np.empty_like(tab.values)
-        for tid in np.unique(tab.target_id):
-            sel = tab.target_id == tid
-            x = targets[int(tid)].state(tab.time[sel])
-            h, _ = predict(tab.fields, x, st.pose.take(np.flatnonzero(sel)))
-            bias = {n: v for (s, n), v in truth.items() if s == tab.station_id}
-            vals[sel] = BiasModel(bias).apply(tab.fields, h)
-        stations.append(StationObservations(dataclasses.replace(tab, values=vals), st.pose))
-    return Observations(tuple(stations), {}, obs.fixes)
 
 
 def _errors(result: SimulationResult, tf) -> tuple[float, float, float, float]:  # type: ignore[no-untyped-def]

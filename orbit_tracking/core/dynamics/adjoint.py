@@ -54,9 +54,8 @@ from __future__ import annotations
 
 import math
 import time as _time
-from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -67,6 +66,7 @@ from orbit_tracking.core import frames
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.dynamics.adjoint_problem import AdjointProblem
 from orbit_tracking.core.dynamics.fit import (
+    DynamicsFit,
     TargetFlight,
     covariance_verdict,
     fit_tables,
@@ -164,25 +164,12 @@ class AdjointConfig:
 
 
 @dataclass(frozen=True)
-class AdjointFlight:
-    """The fitted flight of one target, like :class:`~.fit.TargetFlight`: parameters
-    (state at ``model.epoch``, thrust coefficients), their covariance, and states with
-    covariance anywhere in ``[t0, t1]`` (first and last measurement)."""
+class AdjointFlight(TargetFlight):
+    """The fitted flight of one target, a :class:`~.fit.TargetFlight` whose parameters
+    are the state at ``model.epoch`` and the thrust coefficients (states with covariance
+    anywhere in ``[t0, t1]``, first and last measurement)."""
 
-    target_id: int
     model: ThrustSplineModel
-    theta: FloatArray
-    covariance: FloatArray
-    t0: float
-    t1: float
-
-    def states(self, t: Sequence[float] | FloatArray) -> tuple[FloatArray, FloatArray]:
-        """World-frame (position, velocity) (m, 6) and their covariance (m, 6, 6)."""
-        f = self.model.propagate(self.theta, np.asarray(t, dtype=np.float64))
-        assert f.sensitivity is not None
-        g = f.sensitivity
-        cov = np.einsum('mik,kl,mjl->mij', g, self.covariance, g)
-        return f.state, 0.5 * (cov + np.transpose(cov, (0, 2, 1)))
 
     def thrust(self, t: Sequence[float] | FloatArray) -> tuple[FloatArray, FloatArray]:
         """Thrust acceleration magnitude [m/s^2] and its sigma at ``t``, shape (m,) each."""
@@ -202,31 +189,13 @@ class AdjointFlight:
 
 
 @dataclass(frozen=True)
-class AdjointFit:
-    """Outcome of :func:`fit_adjoint`: the fields of :class:`~.fit.DynamicsFit` (same
-    meanings; ``cost`` is the sum of squares of the measurement and bias prior rows,
-    without the smoothness prior), plus the cost-and-gradient ``evaluations`` and the
-    optimizer's last ``optimizer_message``."""
+class AdjointFit(DynamicsFit):
+    """Outcome of :func:`fit_adjoint`: a :class:`~.fit.DynamicsFit` (same meanings;
+    ``cost`` is the sum of squares of the measurement and bias prior rows, without the
+    smoothness prior), plus the cost-and-gradient ``evaluations`` and the optimizer's
+    last ``optimizer_message``."""
 
-    success: bool
-    message: str
     targets: Mapping[int, AdjointFlight]
-    biases: tuple[BiasParameter, ...]
-    bias_values: FloatArray
-    iterations: int
-    cost: float
-    chi2_dof: float
-    dof: int
-    decrement: float
-    covariance: FloatArray
-    covariance_scale: float
-    information: FloatArray
-    names: tuple[str, ...]
-    used: Counter[str]
-    rejected: Counter[tuple[str, str]]
-    residuals: Mapping[str, tuple[FloatArray, tuple[str, ...], FloatArray, FloatArray]]
-    solve_time: float
-    prior_sigma: FloatArray = field(default_factory=lambda: np.zeros(0))
     evaluations: int = 0
     optimizer_message: str = ''
 

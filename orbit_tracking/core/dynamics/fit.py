@@ -27,9 +27,10 @@ import time as _time
 from collections import Counter
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
+from typing import Protocol
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.dynamics.rocket import Flight, FlightError, RocketModel
@@ -77,13 +78,29 @@ class FitConfig:
             raise ValueError(f'gate_sigma must be > 0; got {self.gate_sigma}')
 
 
+class FlightModel(Protocol):
+    """What a fitted flight needs of its model (the rocket model, the adjoint's thrust
+    spline model)."""
+
+    @property
+    def epoch(self) -> float: ...
+
+    @property
+    def names(self) -> tuple[str, ...]: ...
+
+    def propagate(self, theta: ArrayLike, t: ArrayLike, jacobian: bool = True) -> Flight: ...
+
+    def thrust(self, theta: ArrayLike, t: ArrayLike) -> FloatArray: ...
+
+
 @dataclass(frozen=True)
 class TargetFlight:
     """The fitted flight of one target: parameters, their covariance (marginal, every
-    other unknown estimated too) and states with covariance anywhere in ``[t0, t1]``."""
+    other unknown estimated too) and states with covariance anywhere in ``[t0, t1]``
+    (the rocket model's flight; the adjoint's is a subclass)."""
 
     target_id: int
-    model: RocketModel
+    model: FlightModel
     theta: FloatArray
     covariance: FloatArray
     t0: float
