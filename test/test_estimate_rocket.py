@@ -68,6 +68,9 @@ def test_q3_with_biases_gives_the_contest_outputs(
     assert status['sat06/los_alpha'] == 'not observable'
     assert status['sat09/los_alpha'] == 'estimated'
     assert 'traded against sat06/los_alpha' in summary['weakest_direction'][0]
+    before = {o['parameter']: o['status'] for o in summary['observability_before_solve']}
+    assert before == {k: v for k, v in status.items() if k.startswith('sat')}  # as predicted
+    assert 'before the solve' in printed and 'sat09/los_beta' in printed
     times = _rows(out / 'report_times.csv')
     assert len(times) == 13  # 50 s is 0.18 s before the first line of sight: extrapolated
     assert float(times[0]['thrust']) == pytest.approx(3700.0 / 150.0, rel=0.01)
@@ -90,13 +93,14 @@ def test_q3_without_biases_fails_and_says_what_to_run(
 ) -> None:
     out = tmp_path / 'q3'
     args = ['estimate', str(bags['seed003_q3']), '--model', 'rocket', '--out', str(out), '--quiet']
-    assert cli_main(args) == 1
+    assert cli_main([*args, '--j2']) == 1  # J2 or not, biased lines cannot be fitted
     printed = capsys.readouterr().out
     assert 'FAILED' in printed and 'inconsistent' in printed
     assert 'miss each other by' in printed and '--biases auto' in printed
     assert not (out / 'trajectory.csv').exists()  # never published as a result
     assert (out / 'trajectory_failed.csv').is_file()
     assert not (out / 'bag').exists()
+    assert yaml.safe_load((out / 'summary.yaml').read_text())['config']['j2'] > 1e-3
 
 
 def test_one_satellite_alone(

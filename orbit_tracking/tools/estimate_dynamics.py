@@ -17,22 +17,25 @@ from __future__ import annotations
 import csv
 import math
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 import yaml
 
+from orbit_tracking.core import frames
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.dynamics.adjoint import AdjointFit
 from orbit_tracking.core.dynamics.fit import DynamicsFit
 from orbit_tracking.core.dynamics.observability import (
     ESTIMATED,
+    NOT_OBSERVABLE,
     ParameterObservability,
     classify,
+    classify_before,
     weakest_direction,
 )
-from orbit_tracking.core.dynamics.solve import RocketConfig, fit_model
+from orbit_tracking.core.dynamics.solve import RocketConfig, fit_model, starts
 from orbit_tracking.core.errors import OrbitTrackingError
 from orbit_tracking.core.estimation.bias_files import (
     BiasDeclaration,
@@ -249,6 +252,7 @@ def estimate_dynamics_bag(
     model: str = 'rocket',
     output_step: float = 1.0,
     progress: bool = True,
+    j2: bool = False,
 ) -> DynamicsReport:
     """Fit the rocket model to a bag's station measurements and write the output folder.
 
@@ -264,6 +268,8 @@ def estimate_dynamics_bag(
     decl = load_bias_declaration(biases) if isinstance(biases, str) else biases
     ctx = BagContext.from_custom_data(bag)
     cfg = _frame_config(ctx.world_frame)
+    if j2:
+        cfg = replace(cfg, j2=frames.WGS84_J2)
     buf, counts = read_for_estimation(bag, ctx, progress)
     obs = buf.observations()
     counts.update(buf.counts)
@@ -291,6 +297,18 @@ def estimate_dynamics_bag(
                 'to see the uncertainty they add'
             )
     obs = Observations(obs.stations, {}, obs.fixes)
+    before = classify_before(obs, starts(obs, config=cfg), declared) if declared else []
+    unseen = [
+        p.name
+        for p in before
+        if '/' in p.name and p.status == NOT_OBSERVABLE and not p.name.split('/')[0].isdigit()
+    ]
+    if unseen:
+        warnings.append(
+            'before the solve, at the start: the data cannot determine '
+            + ', '.join(unseen)
+            + ' (they stay near their priors; their uncertainty is in the sigma)'
+        )
     fit = fit_model(obs, model, biases=declared, config=cfg)
     classes = classify(fit)
     weakest = [weakest_direction(fit, obs, tid) for tid in sorted(fit.targets)]
@@ -388,6 +406,16 @@ def estimate_dynamics_bag(
                 'prior_sigma': p.prior_sigma,
             }
             for p in classes
+        ],
+        'observability_before_solve': [
+            {
+                'parameter': p.name,
+                'status': p.status,
+                'bound': p.bound,
+                'prior_sigma': p.prior_sigma,
+            }
+            for p in before
+            if not p.name.split('/')[0].isdigit()
         ],
         'weakest_direction': weakest,
         'warnings': warnings,

@@ -48,6 +48,7 @@ __all__ = [
     'fit_dynamics',
     'fit_tables',
     'gate_pass',
+    'information_at',
 ]
 
 FloatArray = NDArray[np.float64]
@@ -561,3 +562,26 @@ def bound_at(
             tid, prob.models[tid], beta[sl], cov[sl, sl], float(tt[0]), float(tt[-1])
         )
     return out
+
+
+def information_at(
+    obs: Observations,
+    initial: Mapping[int, tuple[RocketModel, FloatArray]],
+    biases: Sequence[BiasParameter] = (),
+) -> tuple[FloatArray, tuple[str, ...], FloatArray, FloatArray]:
+    """The normal matrix of the measurements alone (every measured value, without the bias
+    priors) at the parameters ``initial`` (the biases at their priors): ``(information,
+    names, prior sigmas of the estimated biases, parameter values)``."""
+    prob = _Problem(obs, {k: m for k, (m, _) in initial.items()}, biases)
+    beta = np.concatenate(
+        [np.asarray(initial[t][1], dtype=np.float64) for t in prob.tids]
+        + [np.array([prob.biases[i].prior for i in prob.free])]
+    )
+    _, jac = prob.evaluate(beta, True)
+    assert jac is not None
+    data = jac[: jac.shape[0] - len(prob.free)]
+    names = tuple(f'{t}/{p}' for t in prob.tids for p in prob.models[t].names) + tuple(
+        f'{prob.biases[i].station}/{prob.biases[i].name}' for i in prob.free
+    )
+    prior = np.array([prob.biases[i].sigma for i in prob.free])
+    return data.T @ data, names, prior, beta

@@ -1,4 +1,5 @@
-"""What the measurements of a dynamics fit can and cannot tell (seed 003, issue 15).
+"""What the measurements of a dynamics fit can and cannot tell (seed 003, issue 15), after
+the solve (:func:`classify`) and before it (:func:`classify_before`, at the start).
 
 Per parameter, three figures: its posterior sigma (data and prior), the **bound** of the
 data alone (the square root of the diagonal of the inverse information of the
@@ -22,6 +23,7 @@ of sight and the biases it trades against (correlation beyond 0.5).
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,7 +31,9 @@ from numpy.typing import NDArray
 
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.dynamics.adjoint import AdjointFit
-from orbit_tracking.core.dynamics.fit import DynamicsFit
+from orbit_tracking.core.dynamics.fit import DynamicsFit, information_at
+from orbit_tracking.core.dynamics.rocket import RocketModel
+from orbit_tracking.core.models.systematic import BiasParameter
 
 __all__ = [
     'ESTIMATED',
@@ -37,6 +41,7 @@ __all__ = [
     'WEAK',
     'ParameterObservability',
     'classify',
+    'classify_before',
     'weakest_direction',
 ]
 
@@ -84,23 +89,22 @@ def data_bounds(information: FloatArray) -> FloatArray:
     return np.sqrt(var) / d
 
 
-def classify(fit: DynamicsFit | AdjointFit) -> list[ParameterObservability]:
-    """Every parameter of ``fit`` with its class (module docstring)."""
-    if not np.all(np.isfinite(fit.information)):
-        bound = np.full(len(fit.names), math.inf)
+def _classes(
+    names: Sequence[str],
+    information: FloatArray,
+    covariance: FloatArray,
+    prior_sigma: FloatArray,
+    values: FloatArray,
+) -> list[ParameterObservability]:
+    if not np.all(np.isfinite(information)):
+        bound = np.full(len(names), math.inf)
     else:
-        bound = data_bounds(fit.information)
-    sigma = np.sqrt(np.maximum(np.diag(fit.covariance), 0.0))
-    n_traj = len(fit.names) - fit.prior_sigma.size
-    values = np.concatenate(
-        [
-            *(fit.targets[t].theta for t in sorted(fit.targets)),
-            fit.bias_values[[i for i, b in enumerate(fit.biases) if b.estimate]],
-        ]
-    )
+        bound = data_bounds(information)
+    sigma = np.sqrt(np.maximum(np.diag(covariance), 0.0))
+    n_traj = len(names) - prior_sigma.size
     out = []
-    for i, name in enumerate(fit.names):
-        prior = math.inf if i < n_traj else float(fit.prior_sigma[i - n_traj])
+    for i, name in enumerate(names):
+        prior = math.inf if i < n_traj else float(prior_sigma[i - n_traj])
         b = float(bound[i])
         if math.isinf(prior):
             status = ESTIMATED if math.isfinite(b) else NOT_OBSERVABLE
@@ -114,6 +118,35 @@ def classify(fit: DynamicsFit | AdjointFit) -> list[ParameterObservability]:
             ParameterObservability(name, float(values[i]), float(sigma[i]), b, prior, status)
         )
     return out
+
+
+def classify(fit: DynamicsFit | AdjointFit) -> list[ParameterObservability]:
+    """Every parameter of ``fit`` with its class (module docstring)."""
+    values = np.concatenate(
+        [
+            *(fit.targets[t].theta for t in sorted(fit.targets)),
+            fit.bias_values[[i for i, b in enumerate(fit.biases) if b.estimate]],
+        ]
+    )
+    return _classes(fit.names, fit.information, fit.covariance, fit.prior_sigma, values)
+
+
+def classify_before(
+    obs: Observations,
+    initial: Mapping[int, tuple[RocketModel, FloatArray]],
+    biases: Sequence[BiasParameter],
+) -> list[ParameterObservability]:
+    """The classes the measurements promise *before* the solve: the information of the
+    rocket model at the starting parameters (every row, the biases at their priors).
+    ``value`` is the start and ``sigma`` the posterior sigma the fit would have if the
+    start were the solution."""
+    info, names, prior_sigma, values = information_at(obs, initial, biases)
+    full = info + np.diag(
+        np.concatenate([np.zeros(len(names) - prior_sigma.size), prior_sigma**-2.0])
+    )
+    d = np.sqrt(np.maximum(np.diag(full), 1e-300))
+    cov = np.linalg.pinv(full / np.outer(d, d), rcond=1e-14, hermitian=True) / np.outer(d, d)
+    return _classes(names, info, cov, prior_sigma, values)
 
 
 def weakest_direction(fit: DynamicsFit | AdjointFit, obs: Observations, target_id: int) -> str:

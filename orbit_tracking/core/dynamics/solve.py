@@ -28,7 +28,14 @@ from orbit_tracking.core.errors import OrbitTrackingError
 from orbit_tracking.core.estimation.results import BiasEstimate, Estimate, TargetSolution
 from orbit_tracking.core.models.systematic import BiasParameter
 
-__all__ = ['DYNAMICS_MODELS', 'RocketConfig', 'dynamics_window', 'fit_model', 'fit_rocket']
+__all__ = [
+    'DYNAMICS_MODELS',
+    'RocketConfig',
+    'dynamics_window',
+    'fit_model',
+    'fit_rocket',
+    'starts',
+]
 
 FloatArray = NDArray[np.float64]
 
@@ -89,6 +96,17 @@ def _starts(
     return [
         (model, th) for th in start_candidates(st, tid, model, cfg.min_altitude, cfg.max_altitude)
     ]
+
+
+def starts(
+    obs: Observations, target_ids: Sequence[int] | None = None, config: RocketConfig | None = None
+) -> dict[int, tuple[RocketModel, FloatArray]]:
+    """The first starting point of every target :func:`fit_rocket` would use (for the
+    observability before the solve)."""
+    cfg = config or RocketConfig()
+    ids = sorted(target_ids) if target_ids is not None else obs.target_ids
+    ids = [t for t in ids if any(np.any(s.table.target_id == t) for s in obs.stations)]
+    return {tid: _starts(obs, tid, cfg)[0] for tid in ids}
 
 
 def fit_rocket(

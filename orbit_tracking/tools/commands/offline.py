@@ -65,7 +65,7 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
         from orbit_tracking.tools.estimate_dynamics import estimate_dynamics_bag
 
         dyn = estimate_dynamics_bag(
-            bag, out, biases, times, args.model, args.output_step, not args.quiet
+            bag, out, biases, times, args.model, args.output_step, not args.quiet, args.j2
         )
         for line in dyn.lines():
             print(line)
@@ -203,6 +203,11 @@ def add_estimate(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         "003's rocket-equation flight fitted to the whole bag; or seed 003's adjoint "
         'assimilation of a free thrust profile, started from the rocket fit (both: '
         'Earth-centred frames, telemetry unused, exit code 1 when the fit is not a success)',
+    )
+    s.add_argument(
+        '--j2',
+        action='store_true',
+        help="with --model rocket or adjoint: the Earth's J2 in the gravity (default: point mass)",
     )
     s.add_argument(
         '--report-times',
