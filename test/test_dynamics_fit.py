@@ -21,6 +21,7 @@ from orbit_tracking.core.dynamics.observability import (
 )
 from orbit_tracking.core.dynamics.rocket import RocketModel
 from orbit_tracking.core.dynamics.solve import RocketConfig, fit_rocket
+from orbit_tracking.core.dynamics.staging import StagedRocketModel
 from orbit_tracking.core.models.dynamics import BoostVehicle
 from orbit_tracking.core.models.measurements import predict
 from orbit_tracking.core.models.systematic import BiasModel
@@ -49,6 +50,26 @@ def test_the_sensitivities_are_the_finite_differences_of_the_flight(rotating: bo
         e[k] = h
         fd = (
             model.propagate(THETA + e, t, False).state - model.propagate(THETA - e, t, False).state
+        ) / (2 * h)
+        assert np.abs(fd - sens[:, :, k]).max() <= 1e-6 * np.abs(sens[:, :, k]).max()
+
+
+@pytest.mark.parametrize('rotating', [False, True])
+def test_the_staged_sensitivities_are_the_finite_differences_of_the_flight(
+    rotating: bool,
+) -> None:
+    model = StagedRocketModel(
+        50.0, GM, j2=1.0826e-3 if rotating else 0.0, earth_rate=7.29e-5 if rotating else 0.0
+    )
+    theta = np.concatenate([THETA, [100.0, 3000.0, 120.0]])
+    t = np.linspace(50.5, 170.0, 23)
+    sens = model.propagate(theta, t).sensitivity
+    assert sens is not None
+    for k, h in enumerate((*STEPS, 1e-4, 1e-2, 1e-3)):
+        e = np.zeros(11)
+        e[k] = h
+        fd = (
+            model.propagate(theta + e, t, False).state - model.propagate(theta - e, t, False).state
         ) / (2 * h)
         assert np.abs(fd - sens[:, :, k]).max() <= 1e-6 * np.abs(sens[:, :, k]).max()
 
@@ -194,18 +215,19 @@ def test_q4_multi_sees_every_bias() -> None:
         assert _errors(result, fit, tid)[0] < 80.0
 
 
-def test_a_model_error_is_not_a_success() -> None:
-    """A thrust that stops halfway (a burnout the model does not have) cannot be fitted."""
-    result, obs = _run('seed003_q2')
+def _second_stage(t_s: float, c2: float, tau2: float) -> tuple[Observations, BoostVehicle]:
+    """q2's lines of sight (same noise) of a vehicle whose thrust changes at ``t_s`` to a
+    second stage ``c2 / (tau2 - (t - t_s))`` (simulated by the independent BoostVehicle)."""
+    _, obs = _run('seed003_q2')
     sc = load_scenario('seed003_q2')
-    coast = BoostVehicle(*_state_at(sc, 110.0), 110.0, 110.0, 170.0, 1.0, 1e6, gm=sc.gm)
+    second = BoostVehicle(*_state_at(sc, t_s), t_s, t_s, 170.0, c2, t_s + tau2, gm=sc.gm)
     targets = build_targets(sc)
     stations = []
     for st in obs.stations:
         tab = st.table
-        late = tab.time > 110.0
+        late = tab.time > t_s
         x = targets[0].state(tab.time)
-        x[late] = coast.state(tab.time[late])
+        x[late] = second.state(tab.time[late])
         h, _ = predict(tab.fields, x, st.pose)
         noise = tab.values - predict(tab.fields, targets[0].state(tab.time), st.pose)[0]
         stations.append(
@@ -222,9 +244,38 @@ def test_a_model_error_is_not_a_success() -> None:
                 st.pose,
             )
         )
-    fit = fit_rocket(Observations(tuple(stations), {}, obs.fixes), config=RocketConfig(gm=GM))
+    return Observations(tuple(stations), {}, obs.fixes), second
+
+
+def test_a_model_error_is_not_a_success() -> None:
+    """A thrust that stops halfway (a burnout the model does not have) cannot be fitted."""
+    obs, _ = _second_stage(110.0, 1.0, 1e6)
+    fit = fit_rocket(obs, config=RocketConfig(gm=GM))
     assert not fit.success
     assert 'inconsistent' in fit.message or 'gate' in fit.message
+
+
+def test_a_second_stage_is_found_when_one_burn_does_not_fit() -> None:
+    """A staging at 113.7 s (off the 10 s grid of trial times) to a 2500 m/s stage: one
+    burn is inconsistent; stages=0 (auto) tries two, finds the staging within a second and
+    the flight within its sigmas."""
+    obs, second = _second_stage(113.7, 2500.0, 80.0)
+    assert not fit_rocket(obs, config=RocketConfig(gm=GM)).success
+    fit = fit_rocket(obs, config=RocketConfig(gm=GM, stages=0))
+    assert fit.success, fit.message
+    tf = fit.targets[0]
+    assert tf.theta.size == 11 and abs(tf.theta[8] - 113.7) < 1.0
+    assert tf.theta[9] == pytest.approx(2500.0, rel=0.01)
+    sc = load_scenario('seed003_q2')
+    t = np.linspace(tf.t0, tf.t1, 120)
+    x, cov = tf.states(t)
+    truth = np.where(
+        (t > 113.7)[:, None], second.state(np.clip(t, 113.7, 170.0)), build_targets(sc)[0].state(t)
+    )
+    z = np.abs(x[:, :3] - truth[:, :3]) / np.sqrt(np.diagonal(cov, axis1=1, axis2=2))[:, :3]
+    assert z.max() < 5.0
+    a, _ = tf.thrust(np.array([113.0, 114.5]))
+    assert a[1] == pytest.approx(2500.0 / 80.0, rel=0.05)  # the second stage's thrust
 
 
 def _state_at(sc, t: float) -> tuple[np.ndarray, np.ndarray]:  # type: ignore[no-untyped-def]

@@ -229,6 +229,16 @@ class EstimatorNode(StationInputs):
             'profile, started from the rocket fit).',
             read_only=True,
         )
+        self.stages = declare(
+            self,
+            'stages',
+            1,
+            "Burns of the rocket model (model 'rocket' or 'adjoint'): 1, 2 (a staging at an "
+            'unknown time) or 0 (auto: two when one does not fit).',
+            read_only=True,
+            min_value=0,
+            max_value=2,
+        )
         if self.model not in MODELS:
             raise ValueError(f'model must be one of {", ".join(MODELS)}; got {self.model!r}')
         knot_method = declare(
@@ -657,7 +667,7 @@ class EstimatorNode(StationInputs):
                 f"model {self.model!r} needs an Earth-centred world frame ('eci' or 'earth'); the "
                 f'inputs are in {self.world_frame or "no frame yet"!r}'
             )
-        return RocketConfig(rotating=self.world_frame == 'earth')
+        return RocketConfig(rotating=self.world_frame == 'earth', stages=self.stages)
 
     def _solve(self, span: Span, tb: TimeBase) -> bool:
         t0, t1 = span

@@ -253,6 +253,7 @@ def estimate_dynamics_bag(
     output_step: float = 1.0,
     progress: bool = True,
     j2: bool = False,
+    stages: int = 1,
 ) -> DynamicsReport:
     """Fit the rocket model to a bag's station measurements and write the output folder.
 
@@ -268,6 +269,7 @@ def estimate_dynamics_bag(
     decl = load_bias_declaration(biases) if isinstance(biases, str) else biases
     ctx = BagContext.from_custom_data(bag)
     cfg = _frame_config(ctx.world_frame)
+    cfg = replace(cfg, stages=stages)
     if j2:
         cfg = replace(cfg, j2=frames.WGS84_J2)
     buf, counts = read_for_estimation(bag, ctx, progress)
@@ -363,6 +365,7 @@ def estimate_dynamics_bag(
             'gm': cfg.gm,
             'j2': cfg.j2,
             'rotating_frame': cfg.rotating,
+            'stages': cfg.stages,
         },
         'counts': {k: int(v) for k, v in sorted(counts.items())},
         'totals': {

@@ -33,7 +33,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from orbit_tracking.core.data.observations import Observations
-from orbit_tracking.core.dynamics.rocket import Flight, FlightError, RocketModel
+from orbit_tracking.core.dynamics.rocket import Flight, FlightError
 from orbit_tracking.core.errors import OrbitTrackingError
 from orbit_tracking.core.estimation.verdict import Verdict, judge
 from orbit_tracking.core.models.measurements import StationPose, predict, residual
@@ -89,6 +89,9 @@ class FlightModel(Protocol):
     @property
     def names(self) -> tuple[str, ...]: ...
 
+    @property
+    def n_parameters(self) -> int: ...
+
     def propagate(self, theta: ArrayLike, t: ArrayLike, jacobian: bool = True) -> Flight: ...
 
     def thrust(self, theta: ArrayLike, t: ArrayLike) -> FloatArray: ...
@@ -116,13 +119,19 @@ class TargetFlight:
         return f.state, 0.5 * (cov + np.transpose(cov, (0, 2, 1)))
 
     def thrust(self, t: Sequence[float] | FloatArray) -> tuple[FloatArray, FloatArray]:
-        """Thrust acceleration magnitude [m/s^2] and its sigma at ``t``, shape (m,) each."""
+        """Thrust acceleration magnitude [m/s^2] and its sigma at ``t``, shape (m,) each
+        (the model's closed-form thrust; its gradient by central differences)."""
         tt = np.asarray(t, dtype=np.float64)
-        c, tau = float(self.theta[6]), float(self.theta[7])
-        s = tau - (tt - self.model.epoch)
-        g = np.stack([1.0 / s, -c / s**2], axis=1)
-        var = np.einsum('mi,ij,mj->m', g, self.covariance[6:, 6:], g)
-        return c / s, np.sqrt(np.maximum(var, 0.0))
+        a = self.model.thrust(self.theta, tt)
+        g = np.empty((tt.size, self.theta.size))
+        for k in range(self.theta.size):
+            h = 1e-6 * max(abs(float(self.theta[k])), 1.0)
+            e = np.zeros(self.theta.size)
+            e[k] = h
+            g[:, k] = self.model.thrust(self.theta + e, tt) - self.model.thrust(self.theta - e, tt)
+            g[:, k] /= 2.0 * h
+        var = np.einsum('mi,ij,mj->m', g, self.covariance, g)
+        return a, np.sqrt(np.maximum(var, 0.0))
 
 
 @dataclass(frozen=True)
@@ -177,7 +186,7 @@ class _Problem:
     def __init__(
         self,
         obs: Observations,
-        models: Mapping[int, RocketModel],
+        models: Mapping[int, FlightModel],
         biases: Sequence[BiasParameter],
     ) -> None:
         self.models = dict(models)
@@ -190,7 +199,12 @@ class _Problem:
             )
         self.biases = tuple(biases)
         self.free = [i for i, b in enumerate(self.biases) if b.estimate]
-        self.n_traj = 8 * len(self.tids)
+        sizes = [self.models[t].n_parameters for t in self.tids]
+        starts = np.cumsum([0, *sizes]).tolist()
+        self.slices = {
+            t: slice(a, b) for t, a, b in zip(self.tids, starts[:-1], starts[1:], strict=True)
+        }
+        self.n_traj = int(starts[-1])
         self.n = self.n_traj + len(self.free)
         self.groups: list[_Group] = []
         for st in obs.stations:
@@ -236,8 +250,8 @@ class _Problem:
 
     def flights(self, beta: FloatArray, jacobian: bool) -> dict[int, Flight]:
         return {
-            tid: self.models[tid].propagate(beta[8 * k : 8 * k + 8], self.times[tid], jacobian)
-            for k, tid in enumerate(self.tids)
+            tid: self.models[tid].propagate(beta[self.slices[tid]], self.times[tid], jacobian)
+            for tid in self.tids
         }
 
     def evaluate(
@@ -269,10 +283,9 @@ class _Problem:
                 if self.biases[i].station == g.station
             ]
             d_true, d_param = model.jacobian(g.fields, h, names)
-            k = self.tids.index(g.target)
-            jx = np.einsum('mab,mbc,mcp->map', d_true, dh, f.sensitivity[idx])  # (m, k, 8)
+            jx = np.einsum('mab,mbc,mcp->map', d_true, dh, f.sensitivity[idx])  # (m, k, n_p)
             blk = np.zeros((g.time.size, len(g.fields), self.n))
-            blk[:, :, 8 * k : 8 * k + 8] = jx
+            blk[:, :, self.slices[g.target]] = jx
             if cols:
                 blk[:, :, cols] = d_param
             blk /= -g.sigmas[:, :, None]  # the derivative of the residual, not of h
@@ -441,7 +454,7 @@ def covariance_verdict(
 
 def fit_dynamics(
     obs: Observations,
-    initial: Mapping[int, tuple[RocketModel, FloatArray]],
+    initial: Mapping[int, tuple[FlightModel, FloatArray]],
     biases: Sequence[BiasParameter] = (),
     config: FitConfig | None = None,
 ) -> DynamicsFit:
@@ -451,7 +464,7 @@ def fit_dynamics(
     ----------
     obs : Observations
         Station rows (their target ids pick the target); telemetry and fixes are not used.
-    initial : mapping of target id to (model, theta (8,))
+    initial : mapping of target id to (model, theta (model.n_parameters,))
         The model of each target and its starting parameters.
     biases : sequence of BiasParameter
         Declared systematic errors (``estimate=False`` holds one at its prior).
@@ -504,8 +517,8 @@ def fit_dynamics(
         f'{prob.biases[i].station}/{prob.biases[i].name}' for i in prob.free
     )
     targets = {}
-    for k, tid in enumerate(prob.tids):
-        sl = slice(8 * k, 8 * k + 8)
+    for tid in prob.tids:
+        sl = prob.slices[tid]
         tt = prob.times[tid]
         targets[tid] = TargetFlight(
             tid, prob.models[tid], beta[sl].copy(), cov[sl, sl].copy(), float(tt[0]), float(tt[-1])
@@ -537,7 +550,7 @@ def fit_dynamics(
 
 def bound_at(
     obs: Observations,
-    truth: Mapping[int, tuple[RocketModel, FloatArray]],
+    truth: Mapping[int, tuple[FlightModel, FloatArray]],
     biases: Sequence[BiasParameter] = (),
 ) -> dict[int, TargetFlight]:
     """The Cramer-Rao bound of the model at the true parameters (``truth``; the biases at
@@ -555,8 +568,8 @@ def bound_at(
     d = np.sqrt(np.maximum(np.diag(n), 1e-300))
     cov = np.linalg.pinv(n / np.outer(d, d), rcond=1e-14, hermitian=True) / np.outer(d, d)
     out = {}
-    for k, tid in enumerate(prob.tids):
-        sl = slice(8 * k, 8 * k + 8)
+    for tid in prob.tids:
+        sl = prob.slices[tid]
         tt = prob.times[tid]
         out[tid] = TargetFlight(
             tid, prob.models[tid], beta[sl], cov[sl, sl], float(tt[0]), float(tt[-1])
@@ -566,7 +579,7 @@ def bound_at(
 
 def information_at(
     obs: Observations,
-    initial: Mapping[int, tuple[RocketModel, FloatArray]],
+    initial: Mapping[int, tuple[FlightModel, FloatArray]],
     biases: Sequence[BiasParameter] = (),
 ) -> tuple[FloatArray, tuple[str, ...], FloatArray, FloatArray]:
     """The normal matrix of the measurements alone (every measured value, without the bias

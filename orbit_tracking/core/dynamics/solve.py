@@ -20,9 +20,10 @@ from orbit_tracking.core.dynamics.adjoint import (
     fit_adjoint,
     initial_from_rocket,
 )
-from orbit_tracking.core.dynamics.fit import DynamicsFit, FitConfig, fit_dynamics
+from orbit_tracking.core.dynamics.fit import DynamicsFit, FitConfig, FlightModel, fit_dynamics
 from orbit_tracking.core.dynamics.observability import ESTIMATED, classify
 from orbit_tracking.core.dynamics.rocket import FlightError, RocketModel
+from orbit_tracking.core.dynamics.staging import StagedRocketModel, staged_start
 from orbit_tracking.core.dynamics.start import rough_fixes, start_candidates, start_from_fixes
 from orbit_tracking.core.errors import OrbitTrackingError
 from orbit_tracking.core.estimation.results import BiasEstimate, Estimate, TargetSolution
@@ -43,6 +44,12 @@ DYNAMICS_MODELS: tuple[str, ...] = ('rocket', 'adjoint')
 """The models with dynamics: the rocket-equation flight, and the seed's adjoint
 assimilation of a free thrust profile (started from the rocket fit)."""
 
+STAGING_GRID_S = 10.0
+"""Spacing [s] of the staging times tried for a two-stage start."""
+
+STAGING_SCOUT_ITERATIONS = 6
+"""Levenberg-Marquardt steps each staging time of the grid gets."""
+
 SCOUT_ITERATIONS = 12
 """Levenberg-Marquardt steps each start of a search gets before the best goes on."""
 
@@ -62,6 +69,9 @@ class RocketConfig:
         The world frame turns with the Earth (``earth``): Coriolis and centrifugal terms.
     min_altitude, max_altitude : float
         The altitude band [m] the range hypotheses of a single station's start search.
+    stages : int
+        1: one burn; 2: a staging at an unknown time and a second stage
+        (:mod:`~.staging`); 0 (auto): one, and two when one is not a success.
     fit : FitConfig
     """
 
@@ -70,10 +80,20 @@ class RocketConfig:
     rotating: bool = False
     min_altitude: float = 0.0
     max_altitude: float = 1.5e6
+    stages: int = 1
     fit: FitConfig = FitConfig()
+
+    def __post_init__(self) -> None:
+        if self.stages not in (0, 1, 2):
+            raise ValueError(f'stages must be 1, 2 or 0 (auto); got {self.stages}')
 
     def model(self, epoch: float) -> RocketModel:
         return RocketModel(
+            epoch, self.gm, self.j2, frames.WGS84_A, EARTH_RATE if self.rotating else 0.0
+        )
+
+    def staged_model(self, epoch: float) -> StagedRocketModel:
+        return StagedRocketModel(
             epoch, self.gm, self.j2, frames.WGS84_A, EARTH_RATE if self.rotating else 0.0
         )
 
@@ -157,9 +177,41 @@ def fit_rocket(
     else:
         first = {tid: s[0] for tid, s in starts.items()}
     try:
-        return fit_dynamics(obs, first, biases, cfg.fit)
+        single = fit_dynamics(obs, first, biases, cfg.fit)
     except FlightError as exc:
         raise OrbitTrackingError(f'the rocket fit failed: {exc}') from exc
+    if cfg.stages == 1 or (cfg.stages == 0 and single.success):
+        return single
+    staged = fit_dynamics(obs, _staged_starts(obs, single, biases, cfg), biases, cfg.fit)
+    if cfg.stages == 2 or staged.success or staged.chi2_dof < single.chi2_dof:
+        return staged
+    return single
+
+
+def _staged_starts(
+    obs: Observations, single: DynamicsFit, biases: Sequence[BiasParameter], cfg: RocketConfig
+) -> dict[int, tuple[FlightModel, FloatArray]]:
+    """Each target's two-stage start: the single-stage fit continued by a second stage
+    from a staging on a :data:`STAGING_GRID_S` grid over its span, the grid point whose
+    few scouting steps (that target alone, biases held) end at the lowest cost."""
+    scout = replace(cfg.fit, max_iterations=STAGING_SCOUT_ITERATIONS, gate_passes=1)
+    held = [replace(b, estimate=False) for b in biases]
+    out: dict[int, tuple[FlightModel, FloatArray]] = {}
+    for tid, tf in single.targets.items():
+        model = cfg.staged_model(tf.model.epoch)
+        best_cost, best = math.inf, None
+        for t_s in np.arange(tf.t0 + STAGING_GRID_S, tf.t1 - 0.5 * STAGING_GRID_S, STAGING_GRID_S):
+            start = staged_start(tf.theta, float(t_s), tf.model.epoch)
+            try:
+                trial = fit_dynamics(obs, {tid: (model, start)}, held, scout)
+            except FlightError:
+                continue
+            if trial.cost < best_cost:
+                best_cost, best = trial.cost, trial.targets[tid].theta
+        if best is None:
+            raise OrbitTrackingError(f'target {tid}: no staging time gave a flight')
+        out[tid] = (model, best)
+    return out
 
 
 def fit_model(

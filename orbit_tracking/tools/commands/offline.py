@@ -64,8 +64,17 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     if args.model != 'spline':
         from orbit_tracking.tools.estimate_dynamics import estimate_dynamics_bag
 
+        stages = {'1': 1, '2': 2, 'auto': 0}[args.stages]
         dyn = estimate_dynamics_bag(
-            bag, out, biases, times, args.model, args.output_step, not args.quiet, args.j2
+            bag,
+            out,
+            biases,
+            times,
+            args.model,
+            args.output_step,
+            not args.quiet,
+            args.j2,
+            stages,
         )
         for line in dyn.lines():
             print(line)
@@ -203,6 +212,14 @@ def add_estimate(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         "003's rocket-equation flight fitted to the whole bag; or seed 003's adjoint "
         'assimilation of a free thrust profile, started from the rocket fit (both: '
         'Earth-centred frames, telemetry unused, exit code 1 when the fit is not a success)',
+    )
+    s.add_argument(
+        '--stages',
+        choices=('1', '2', 'auto'),
+        default='1',
+        help='with --model rocket or adjoint: burns of the rocket model: one (default), two '
+        '(a staging at an unknown time, searched on a 10 s grid), or auto (two when one does '
+        'not fit)',
     )
     s.add_argument(
         '--j2',
