@@ -2,6 +2,7 @@
 
 * :mod:`.rocket`: gravity plus a thrust along the velocity with the rocket equation's
   magnitude, eight parameters, sensitivities by the variational equations;
+  :mod:`.staging` adds a second stage at an unknown staging time;
 * :mod:`.fit`: a model fitted to the raw measurements jointly with the biases
   (Levenberg-Marquardt), and its Cramér–Rao bound at the truth;
 * :mod:`.start`, :mod:`.solve`: starting points (fixes, rough fixes from the rows, a
