@@ -78,6 +78,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         from orbit_tracking.tools.bench.seed003 import (
             SEED003_SCENARIOS,
             bench_seed003,
+            bench_seed003_family,
+            family_table,
             seed003_tables,
         )
 
@@ -89,6 +91,14 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         text = seed003_tables(srows, args.seeds) + footer(t0)
         if plots:
             text += f' Error plots (seed 0): `{plots}/<scenario>_<biases>_<rocket|adjoint>.png`.'
+        t1 = time.monotonic()
+        family = bench_seed003_family(args.draws, not args.quiet)
+        text += (
+            '\n\n'
+            + family_table(family)
+            + f'\n\nMeasured by `orbit-tracking bench --suite seed003 --draws {args.draws}` '
+            f'in {time.monotonic() - t1:.0f} s.'
+        )
         print(text)
         if args.write_docs:
             write_docs(args.docs, 'seed003', text)
@@ -251,7 +261,12 @@ def add_bench(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     s.add_argument('--lanes', type=int, default=2, help='faults: replays run at a time (1 or 2)')
     s.add_argument('--logs', type=Path, help='faults: keep the node logs of every replay here')
-    s.add_argument('--draws', type=int, default=20, help='robustness: randomised draws in all')
+    s.add_argument(
+        '--draws',
+        type=int,
+        default=20,
+        help='robustness, seed003: randomised draws in all (seed003: of its own family)',
+    )
     s.add_argument(
         '--kind',
         choices=('ascent', 'aircraft', 'all'),
