@@ -661,14 +661,6 @@ class EstimatorNode(StationInputs):
                 return False
         return self.count_publishers('triangulation/fixes') > 0
 
-    def _rocket_config(self) -> RocketConfig:
-        if self.world_frame not in ('eci', 'earth'):
-            raise OrbitTrackingError(
-                f"model {self.model!r} needs an Earth-centred world frame ('eci' or 'earth'); the "
-                f'inputs are in {self.world_frame or "no frame yet"!r}'
-            )
-        return RocketConfig(rotating=self.world_frame == 'earth', stages=self.stages)
-
     def _solve(self, span: Span, tb: TimeBase) -> bool:
         t0, t1 = span
         wall = time.monotonic()
@@ -679,7 +671,13 @@ class EstimatorNode(StationInputs):
             cfg = self._window_config(obs)
             if self.model != 'spline':
                 est = dynamics_window(
-                    obs, t0, t1, self.model, ids, cfg.biases, self._rocket_config()
+                    obs,
+                    t0,
+                    t1,
+                    self.model,
+                    ids,
+                    cfg.biases,
+                    RocketConfig.for_frame(self.world_frame, stages=self.stages),
                 )
             else:
                 est = estimate(obs, t0, t1, cfg, ids, self.previous or None)

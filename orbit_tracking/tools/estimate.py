@@ -55,7 +55,7 @@ from orbit_tracking.tools.bag_inputs import (
 from orbit_tracking.tools.evaluation import (
     bias_lines,
     bias_summary,
-    evaluate_target,
+    evaluate_tracks,
     evaluation_lines,
     final_biases,
 )
@@ -468,11 +468,7 @@ def estimate_bag(
         biases=tuple(b for b, _ in final),
         bias_notes=bias_notes,
     )
-    for tid, (tt, x, cov) in tracks.items():
-        if tid in ctx.truth and tt.size:
-            ev = evaluate_target(ctx, tid, tt, x, cov)
-            if ev:
-                report.evaluation[tid] = ev
+    report.evaluation.update(evaluate_tracks(ctx, tracks))
     summary = {
         'bag': str(bag),
         'scenario': ctx.scenario,

@@ -17,7 +17,7 @@ from __future__ import annotations
 import csv
 import math
 from collections import Counter
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -31,12 +31,12 @@ from orbit_tracking.core.dynamics.observability import (
     ESTIMATED,
     NOT_OBSERVABLE,
     ParameterObservability,
+    bias_estimates,
     classify,
     classify_before,
     weakest_direction,
 )
-from orbit_tracking.core.dynamics.solve import RocketConfig, fit_model, starts
-from orbit_tracking.core.errors import OrbitTrackingError
+from orbit_tracking.core.dynamics.solve import RocketConfig, fit_model, start_points
 from orbit_tracking.core.estimation.bias_files import (
     BiasDeclaration,
     load_bias_declaration,
@@ -44,7 +44,11 @@ from orbit_tracking.core.estimation.bias_files import (
     write_biases_csv,
 )
 from orbit_tracking.core.estimation.results import BiasEstimate
-from orbit_tracking.core.estimation.windows import output_times, write_trajectory_csv
+from orbit_tracking.core.estimation.windows import (
+    TRAJECTORY_CSV_COLUMNS,
+    output_times,
+    write_trajectory_csv,
+)
 from orbit_tracking.core.time import format_stamp
 from orbit_tracking.core.triangulation.intersection import Gates
 from orbit_tracking.core.triangulation.pipeline import fix_series
@@ -58,7 +62,7 @@ from orbit_tracking.tools.estimate import (
     triangulated_fixes,
     write_output_bag,
 )
-from orbit_tracking.tools.evaluation import bias_lines, evaluate_target, evaluation_lines
+from orbit_tracking.tools.evaluation import bias_lines, evaluate_tracks, evaluation_lines
 
 __all__ = ['DynamicsReport', 'estimate_dynamics_bag', 'parse_report_times']
 
@@ -126,62 +130,10 @@ class DynamicsReport:
         return out
 
 
-def _frame_config(frame: str) -> RocketConfig:
-    if frame == 'eci':
-        return RocketConfig()
-    if frame == 'earth':
-        return RocketConfig(rotating=True)
-    raise OrbitTrackingError(
-        f"the rocket model needs an Earth-centred world frame ('eci' or 'earth'); the bag's "
-        f'is {frame or "not stated"!r}'
-    )
-
-
-def _bias_estimates(
-    fit: DynamicsFit, obs_list: list[ParameterObservability]
-) -> list[BiasEstimate]:
-    by_name = {p.name: p for p in obs_list}
-    out = []
-    for b, v in zip(fit.biases, fit.bias_values, strict=True):
-        p = by_name.get(f'{b.station}/{b.name}')
-        if p is None:  # held at its declared value
-            out.append(
-                BiasEstimate(b.station, b.name, float(v), b.sigma, b.prior, b.sigma, 'known')
-            )
-            continue
-        status = (
-            p.status
-            if p.status == ESTIMATED
-            else (
-                f'{p.status}: bound of the data {p.bound:.3g} against a prior sigma of '
-                f'{p.prior_sigma:.3g}'
-            )
-        )
-        out.append(BiasEstimate(b.station, b.name, float(v), p.sigma, b.prior, b.sigma, status))
-    return out
-
-
 def _write_report_times(
     path: Path, fit: DynamicsFit | AdjointFit, times: np.ndarray, ref_ns: int
 ) -> int:
-    cols = [
-        'time',
-        'target_id',
-        'x',
-        'y',
-        'z',
-        'vx',
-        'vy',
-        'vz',
-        'sx',
-        'sy',
-        'sz',
-        'svx',
-        'svy',
-        'svz',
-        'thrust',
-        'sigma_thrust',
-    ]
+    cols = ['time', 'target_id', *TRAJECTORY_CSV_COLUMNS[1:], 'thrust', 'sigma_thrust']
     n = 0
     with open(path, 'w', newline='') as fh:
         w = csv.writer(fh)
@@ -268,10 +220,7 @@ def estimate_dynamics_bag(
     """
     decl = load_bias_declaration(biases) if isinstance(biases, str) else biases
     ctx = BagContext.from_custom_data(bag)
-    cfg = _frame_config(ctx.world_frame)
-    cfg = replace(cfg, stages=stages)
-    if j2:
-        cfg = replace(cfg, j2=frames.WGS84_J2)
+    cfg = RocketConfig.for_frame(ctx.world_frame, stages=stages, j2=frames.WGS84_J2 if j2 else 0.0)
     buf, counts = read_for_estimation(bag, ctx, progress)
     obs = buf.observations()
     counts.update(buf.counts)
@@ -299,7 +248,9 @@ def estimate_dynamics_bag(
                 'to see the uncertainty they add'
             )
     obs = Observations(obs.stations, {}, obs.fixes)
-    before = classify_before(obs, starts(obs, config=cfg), declared) if declared else []
+    points = start_points(obs, config=cfg)
+    first = {tid: p[0] for tid, p in points.items()}
+    before = classify_before(obs, first, declared) if declared else []
     unseen = [
         p.name
         for p in before
@@ -311,10 +262,10 @@ def estimate_dynamics_bag(
             + ', '.join(unseen)
             + ' (they stay near their priors; their uncertainty is in the sigma)'
         )
-    fit = fit_model(obs, model, biases=declared, config=cfg)
+    fit = fit_model(obs, model, biases=declared, config=cfg, starts=points)
     classes = classify(fit)
     weakest = [weakest_direction(fit, obs, tid) for tid in sorted(fit.targets)]
-    bias_rows = _bias_estimates(fit, classes)
+    bias_rows = bias_estimates(fit, classes)
     tb = ctx.timebase or TimeBase(0)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -348,11 +299,7 @@ def estimate_dynamics_bag(
     report = DynamicsReport(
         fit, model, classes, weakest, warnings, files, counts, tuple(bias_rows), start=start
     )
-    for tid, (tt, x, cov) in tracks.items():
-        if tid in ctx.truth and tt.size:
-            ev = evaluate_target(ctx, tid, tt, x, cov)
-            if ev:
-                report.evaluation[tid] = ev
+    report.evaluation.update(evaluate_tracks(ctx, tracks))
     summary = {
         'bag': str(bag),
         'scenario': ctx.scenario,

@@ -5,7 +5,7 @@ simulated ones; the summary lines the tools print."""
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -16,7 +16,14 @@ from orbit_tracking.core.metrics import hermite_states, nees
 from orbit_tracking.core.models.systematic import ESTIMABLE_BIASES
 from orbit_tracking.tools.bag_inputs import BagContext
 
-__all__ = ['bias_lines', 'bias_summary', 'evaluate_target', 'evaluation_lines', 'final_biases']
+__all__ = [
+    'bias_lines',
+    'bias_summary',
+    'evaluate_target',
+    'evaluate_tracks',
+    'evaluation_lines',
+    'final_biases',
+]
 
 
 def evaluation_lines(evaluation: dict[int, dict[str, dict[str, float]]]) -> list[str]:
@@ -85,6 +92,20 @@ def evaluate_target(
             'mean_nees_position': float(np.mean(nees(ep[sel], cov[sel][:, :3, :3]))),
             'mean_nees_state': float(np.mean(nees(e6, cov[sel]))),
         }
+    return out
+
+
+def evaluate_tracks(
+    ctx: BagContext, tracks: Mapping[int, tuple[np.ndarray, np.ndarray, np.ndarray]]
+) -> dict[int, dict[str, dict[str, float]]]:
+    """:func:`evaluate_target` of every track ``{id: (times, x, cov)}`` the bag has truth
+    for (the ``evaluation`` of the summaries)."""
+    out = {}
+    for tid, (tt, x, cov) in tracks.items():
+        if tid in ctx.truth and tt.size:
+            ev = evaluate_target(ctx, tid, tt, x, cov)
+            if ev:
+                out[tid] = ev
     return out
 
 

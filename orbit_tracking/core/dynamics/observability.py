@@ -33,6 +33,7 @@ from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.dynamics.adjoint import AdjointFit
 from orbit_tracking.core.dynamics.fit import DynamicsFit, information_at
 from orbit_tracking.core.dynamics.rocket import RocketModel
+from orbit_tracking.core.estimation.results import BiasEstimate
 from orbit_tracking.core.models.systematic import BiasParameter
 
 __all__ = [
@@ -41,6 +42,7 @@ __all__ = [
     'WEAK',
     'ParameterObservability',
     'classify',
+    'bias_estimates',
     'classify_before',
     'weakest_direction',
 ]
@@ -193,3 +195,27 @@ def weakest_direction(fit: DynamicsFit | AdjointFit, obs: Observations, target_i
         if strong:
             parts.append('traded against ' + ', '.join(f'{n} (corr {c:+.2f})' for n, c in strong))
     return '; '.join(parts)
+
+
+def bias_estimates(
+    fit: DynamicsFit | AdjointFit, classes: Sequence[ParameterObservability]
+) -> list[BiasEstimate]:
+    """The fit's biases as :class:`~orbit_tracking.core.estimation.results.BiasEstimate`
+    rows (``biases.csv``, ``trajectory/biases``): ``known`` when held at the declared value,
+    else the class, with the bound and the prior sigma when it is not ``estimated``."""
+    by_name = {p.name: p for p in classes}
+    out = []
+    for b, v in zip(fit.biases, fit.bias_values, strict=True):
+        p = by_name.get(f'{b.station}/{b.name}')
+        if p is None:  # held at its declared value
+            out.append(
+                BiasEstimate(b.station, b.name, float(v), b.sigma, b.prior, b.sigma, 'known')
+            )
+            continue
+        status = p.status
+        if status != ESTIMATED:
+            status += (
+                f': bound of the data {p.bound:.3g} against a prior sigma of {p.prior_sigma:.3g}'
+            )
+        out.append(BiasEstimate(b.station, b.name, float(v), p.sigma, b.prior, b.sigma, status))
+    return out

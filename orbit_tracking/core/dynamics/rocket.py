@@ -128,6 +128,16 @@ class RocketModel:
         th = np.asarray(theta, dtype=np.float64)
         return th[6] / (th[7] - (np.atleast_1d(np.asarray(t, float)) - self.epoch))
 
+    def acceleration(self, y: FloatArray, thrust: float) -> FloatArray:
+        """Acceleration [m/s^2] at state ``y`` (6,) with a thrust of magnitude ``thrust``
+        along the velocity (gravity, and the rotating frame's terms)."""
+        r, v = y[:3], y[3:6]
+        acc = gravity(r, self.gm, self.j2, self.radius) + thrust * v / np.linalg.norm(v)
+        if self.earth_rate:
+            w = np.array([0.0, 0.0, self.earth_rate])
+            acc = acc - 2.0 * np.cross(w, v) - np.cross(w, np.cross(w, r))
+        return np.asarray(acc, dtype=np.float64)
+
     def _gravity_gradient(self, r: FloatArray) -> FloatArray:
         rn = float(np.linalg.norm(r))
         u = r / rn
@@ -162,9 +172,7 @@ class RocketModel:
             s = tau - (t - t0)
             speed = float(np.linalg.norm(v))
             vh = v / speed
-            acc = gravity(r, self.gm, self.j2, self.radius) + (c / s) * vh
-            if self.earth_rate:
-                acc = acc - 2.0 * np.cross(w, v) - np.cross(w, np.cross(w, r))
+            acc = self.acceleration(y, c / s)
             if not with_sens:
                 return np.concatenate([v, acc])
             phi = y[6:].reshape(6, 8)

@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import cast
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -21,12 +21,12 @@ from orbit_tracking.core.dynamics.adjoint import (
     initial_from_rocket,
 )
 from orbit_tracking.core.dynamics.fit import DynamicsFit, FitConfig, FlightModel, fit_dynamics
-from orbit_tracking.core.dynamics.observability import ESTIMATED, classify
+from orbit_tracking.core.dynamics.observability import bias_estimates, classify
 from orbit_tracking.core.dynamics.rocket import FlightError, RocketModel
 from orbit_tracking.core.dynamics.staging import StagedRocketModel, staged_start
 from orbit_tracking.core.dynamics.start import rough_fixes, start_candidates, start_from_fixes
 from orbit_tracking.core.errors import OrbitTrackingError
-from orbit_tracking.core.estimation.results import BiasEstimate, Estimate, TargetSolution
+from orbit_tracking.core.estimation.results import Estimate, TargetSolution
 from orbit_tracking.core.models.systematic import BiasParameter
 
 __all__ = [
@@ -35,7 +35,7 @@ __all__ = [
     'dynamics_window',
     'fit_model',
     'fit_rocket',
-    'starts',
+    'start_points',
 ]
 
 FloatArray = NDArray[np.float64]
@@ -87,6 +87,22 @@ class RocketConfig:
         if self.stages not in (0, 1, 2):
             raise ValueError(f'stages must be 1, 2 or 0 (auto); got {self.stages}')
 
+    @classmethod
+    def for_frame(cls, frame: str, **settings: Any) -> RocketConfig:
+        """The config for a world frame: ``eci`` inertial, ``earth`` rotating.
+
+        Raises
+        ------
+        OrbitTrackingError
+            Any other frame: the models need an Earth-centred one.
+        """
+        if frame not in ('eci', 'earth'):
+            raise OrbitTrackingError(
+                "the dynamics models need an Earth-centred world frame ('eci' or 'earth'); "
+                f'the data are in {frame or "no stated frame"!r}'
+            )
+        return cls(rotating=frame == 'earth', **settings)
+
     def model(self, epoch: float) -> RocketModel:
         return RocketModel(
             epoch, self.gm, self.j2, frames.WGS84_A, EARTH_RATE if self.rotating else 0.0
@@ -118,15 +134,19 @@ def _starts(
     ]
 
 
-def starts(
+Starts = dict[int, list[tuple[RocketModel, FloatArray]]]
+"""Every target's starting points, best first (:func:`start_points`)."""
+
+
+def start_points(
     obs: Observations, target_ids: Sequence[int] | None = None, config: RocketConfig | None = None
-) -> dict[int, tuple[RocketModel, FloatArray]]:
-    """The first starting point of every target :func:`fit_rocket` would use (for the
-    observability before the solve)."""
+) -> Starts:
+    """The starting points of every measured target that :func:`fit_rocket` tries (the
+    first of each also serves the observability before the solve)."""
     cfg = config or RocketConfig()
     ids = sorted(target_ids) if target_ids is not None else obs.target_ids
     ids = [t for t in ids if any(np.any(s.table.target_id == t) for s in obs.stations)]
-    return {tid: _starts(obs, tid, cfg)[0] for tid in ids}
+    return {tid: _starts(obs, tid, cfg) for tid in ids}
 
 
 def fit_rocket(
@@ -134,13 +154,16 @@ def fit_rocket(
     target_ids: Sequence[int] | None = None,
     biases: Sequence[BiasParameter] = (),
     config: RocketConfig | None = None,
+    starts: Starts | None = None,
 ) -> DynamicsFit:
     """Fit the rocket model of every target (jointly, sharing the biases).
 
     Each target starts from its fixes (``obs.fixes``) when it has some, else from rough
     fixes made from the rows (:func:`~.start.rough_fixes`: radar points, two stations'
     crossing lines), else from the range-hypothesis search on the angles of the station
-    that sees it most (:func:`~.start.start_candidates`). With several starts each is
+    that sees it most (:func:`~.start.start_candidates`); ``starts`` (from
+    :func:`start_points`) skips that search when it was made already. With several starts
+    each is
     fitted a few steps (:data:`SCOUT_ITERATIONS`, biases held) and the fit goes on from the
     one of lowest cost.
 
@@ -150,11 +173,10 @@ def fit_rocket(
         No target, no usable start, or no start could be flown.
     """
     cfg = config or RocketConfig()
-    ids = sorted(target_ids) if target_ids is not None else obs.target_ids
-    ids = [t for t in ids if any(np.any(s.table.target_id == t) for s in obs.stations)]
-    if not ids:
+    if starts is None:
+        starts = start_points(obs, target_ids, cfg)
+    if not starts:
         raise OrbitTrackingError('no station measurement of any target to fit')
-    starts = {tid: _starts(obs, tid, cfg) for tid in ids}
     n_alt = max(len(v) for v in starts.values())
     errors = []
     if n_alt > 1:  # scout every start a few steps, biases held; go on from the best
@@ -221,6 +243,7 @@ def fit_model(
     biases: Sequence[BiasParameter] = (),
     config: RocketConfig | None = None,
     adjoint: AdjointConfig | None = None,
+    starts: Starts | None = None,
 ) -> DynamicsFit | AdjointFit:
     """:func:`fit_rocket`, or for ``model='adjoint'`` the adjoint assimilation started
     from it (its gravity settings are the rocket config's; the rocket fit need not be a
@@ -236,7 +259,7 @@ def fit_model(
     if model not in DYNAMICS_MODELS:
         raise ValueError(f'model must be one of {", ".join(DYNAMICS_MODELS)}; got {model!r}')
     cfg = config or RocketConfig()
-    rocket = fit_rocket(obs, target_ids, biases, cfg)
+    rocket = fit_rocket(obs, target_ids, biases, cfg, starts)
     if model == 'rocket':
         return rocket
     acfg = replace(adjoint or AdjointConfig(), gm=cfg.gm, j2=cfg.j2, rotating=cfg.rotating)
@@ -262,19 +285,7 @@ def dynamics_window(
     ``states``), not the spline's coefficients, so they cannot seed a spline window.
     A bias's status is its observability class."""
     fit = fit_model(obs.window(t0, t1), model, target_ids, biases, config)
-    classes = {p.name: p for p in classify(fit)}
-    rows = []
-    for b, v in zip(fit.biases, fit.bias_values, strict=True):
-        p = classes.get(f'{b.station}/{b.name}')
-        if p is None:
-            rows.append(
-                BiasEstimate(b.station, b.name, float(v), b.sigma, b.prior, b.sigma, 'known')
-            )
-        else:
-            status = ESTIMATED if p.status == ESTIMATED else f'{p.status}: bound {p.bound:.3g}'
-            rows.append(
-                BiasEstimate(b.station, b.name, float(v), p.sigma, b.prior, b.sigma, status)
-            )
+    rows = bias_estimates(fit, classify(fit))
     d = np.sqrt(np.maximum(np.diag(fit.information), 1e-300))
     with np.errstate(all='ignore'):
         cond = float(np.linalg.cond(fit.information / np.outer(d, d)))

@@ -25,7 +25,6 @@ from numpy.typing import ArrayLike, NDArray
 
 from orbit_tracking.core import frames
 from orbit_tracking.core.dynamics.rocket import PARAMETERS, Flight, FlightError, RocketModel
-from orbit_tracking.core.models.dynamics import gravity
 
 __all__ = ['STAGED_PARAMETERS', 'StagedRocketModel', 'staged_start']
 
@@ -73,15 +72,6 @@ class StagedRocketModel:
         second = th[9] / (th[10] - (tt - ts))
         return np.where(tt < ts, first, second)
 
-    def _accel(self, c: float, s: float, y: FloatArray) -> FloatArray:
-        """Acceleration at state ``y`` with thrust ``c / s``."""
-        r, v = y[:3], y[3:6]
-        acc = gravity(r, self.gm, self.j2, self.radius) + c / s * v / np.linalg.norm(v)
-        if self.earth_rate:
-            w = np.array([0.0, 0.0, self.earth_rate])
-            acc = acc - 2.0 * np.cross(w, v) - np.cross(w, np.cross(w, r))
-        return acc
-
     def propagate(self, theta: ArrayLike, t: ArrayLike, jacobian: bool = True) -> Flight:
         """States (and sensitivities, (m, 6, 11)) at times ``t`` from ``theta``.
 
@@ -116,11 +106,13 @@ class StagedRocketModel:
             sens[before, :, :8] = head.sensitivity[:-1]
             phi_s = head.sensitivity[-1]  # d y(t_s) / d theta_1 (6, 8)
             phi2 = tail.sensitivity  # (m2, 6, 8): by y(t_s), c2, tau2
-            f1 = np.concatenate([y_s[3:], self._accel(th[6], th[7] - (ts - self.epoch), y_s)])
+            f1 = np.concatenate(
+                [y_s[3:], one.acceleration(y_s, th[6] / (th[7] - (ts - self.epoch)))]
+            )
             y2, t2 = tail.state, tt[~before]
             f2 = np.array(
                 [
-                    np.concatenate([y[3:], self._accel(th[9], th[10] - (ti - ts), y)])
+                    np.concatenate([y[3:], two.acceleration(y, th[9] / (th[10] - (ti - ts)))])
                     for y, ti in zip(y2, t2, strict=True)
                 ]
             ).reshape(-1, 6)
