@@ -197,8 +197,15 @@ def test_the_adjoint_model_from_the_command_line(
     summary = yaml.safe_load((out / 'summary.yaml').read_text())
     assert summary['model'] == 'adjoint'
     assert summary['evaluation'][0]['outside_gaps']['mean_nees_state'] < 20.0
-    # the thrust profile is known only where measured: 60 ... 160 s
-    assert len(_rows(out / 'report_times.csv')) == 11
+    # 50 s is 0.18 s before the first line of sight and 170 s 0.02 s after the last: the
+    # control is extended to them (both ends included), and their sigma says the data end
+    times = _rows(out / 'report_times.csv')
+    assert [round(float(r['time']) - float(times[0]['time'])) for r in times] == list(
+        range(0, 121, 10)
+    )
+    st = [float(r['sigma_thrust']) for r in times]
+    assert st[0] > 5.0 * st[1] and st[-1] > 5.0 * st[-2]
+    assert float(times[6]['thrust']) == pytest.approx(3700.0 / (150.0 - 60.0), rel=0.05)
 
 
 def test_the_randomised_seed003_family_is_solved_within_its_bounds() -> None:

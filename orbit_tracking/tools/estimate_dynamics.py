@@ -25,7 +25,7 @@ import yaml
 
 from orbit_tracking.core import frames
 from orbit_tracking.core.data.observations import Observations
-from orbit_tracking.core.dynamics.adjoint import AdjointFit
+from orbit_tracking.core.dynamics.adjoint import COVER_LIMIT_S, AdjointFit, AdjointFlight
 from orbit_tracking.core.dynamics.fit import DynamicsFit
 from orbit_tracking.core.dynamics.observability import (
     ESTIMATED,
@@ -65,11 +65,6 @@ from orbit_tracking.tools.estimate import (
 from orbit_tracking.tools.evaluation import bias_lines, evaluate_tracks, evaluation_lines
 
 __all__ = ['DynamicsReport', 'estimate_dynamics_bag', 'parse_report_times']
-
-REPORT_MARGIN_S = 10.0
-"""Report times up to this far outside the measured span are given by the rocket model
-(its flight extrapolates, with its covariance); farther ones are left out, and so are all
-outside the span for the adjoint model (its thrust profile is known only there)."""
 
 
 def parse_report_times(text: str) -> np.ndarray:
@@ -139,12 +134,11 @@ def _write_report_times(
         w = csv.writer(fh)
         w.writerow(cols)
         for tid, tf in sorted(fit.targets.items()):
-            t = times[(times >= tf.t0 - REPORT_MARGIN_S) & (times <= tf.t1 + REPORT_MARGIN_S)]
-            try:
-                x, cov = tf.states(t)
-            except ValueError:  # the adjoint's thrust spline ends with the measurements
-                t = times[(times >= tf.t0) & (times <= tf.t1)]
-                x, cov = tf.states(t)
+            t = times[(times >= tf.t0 - COVER_LIMIT_S) & (times <= tf.t1 + COVER_LIMIT_S)]
+            if isinstance(tf, AdjointFlight):  # its thrust spline is where the fit made it
+                span = tf.model.control
+                t = t[(t >= span.t0 - 1e-9) & (t <= span.t1 + 1e-9)]
+            x, cov = tf.states(t)
             if not t.size:
                 continue
             a, sa = tf.thrust(t)
@@ -262,7 +256,10 @@ def estimate_dynamics_bag(
             + ', '.join(unseen)
             + ' (they stay near their priors; their uncertainty is in the sigma)'
         )
-    fit = fit_model(obs, model, biases=declared, config=cfg, starts=points)
+    cover = None
+    if report_times is not None and report_times.size:
+        cover = (float(np.min(report_times)), float(np.max(report_times)))
+    fit = fit_model(obs, model, biases=declared, config=cfg, starts=points, cover=cover)
     classes = classify(fit)
     weakest = [weakest_direction(fit, obs, tid) for tid in sorted(fit.targets)]
     bias_rows = bias_estimates(fit, classes)

@@ -83,12 +83,17 @@ __all__ = [
     'AdjointFit',
     'AdjointFlight',
     'AdjointProblem',
+    'COVER_LIMIT_S',
     'ThrustStart',
     'fit_adjoint',
     'initial_from_rocket',
 ]
 
 FloatArray = NDArray[np.float64]
+
+COVER_LIMIT_S = 10.0
+"""Longest extension of a fitted flight beyond its first or last measurement [s] for
+reported states (both models): farther out is prediction, not estimation."""
 
 ThrustStart = float | Callable[[FloatArray], ArrayLike] | ArrayLike
 """A starting thrust: a constant magnitude along the velocity [m/s^2], a function of time
@@ -288,17 +293,26 @@ def _start_coefficients(
 
 
 def initial_from_rocket(
-    targets: Mapping[int, TargetFlight],
+    targets: Mapping[int, TargetFlight], start: float | None = None
 ) -> dict[int, tuple[float, FloatArray, ThrustStart]]:
     """Starts for :func:`fit_adjoint` from a rocket fit's flights: each target's state at
-    the rocket epoch and the rocket-equation thrust ``c / (tau - (t - t0))``."""
+    the rocket epoch and the rocket-equation thrust ``c / (tau - (t - t0))``.
+
+    ``start`` [s] moves the epoch earlier, to cover a report time before the first
+    measurement (at most :data:`COVER_LIMIT_S` before it; the state there is the rocket
+    flight's)."""
     out: dict[int, tuple[float, FloatArray, ThrustStart]] = {}
     for tid, tf in targets.items():
 
         def thrust(t: FloatArray, tf: TargetFlight = tf) -> FloatArray:
             return tf.model.thrust(tf.theta, t)
 
-        out[tid] = (float(tf.model.epoch), np.asarray(tf.theta[:6], dtype=np.float64), thrust)
+        epoch = float(tf.model.epoch)
+        state = np.asarray(tf.theta[:6], dtype=np.float64)
+        if start is not None and math.isfinite(start) and start < epoch:
+            epoch = max(float(start), tf.t0 - COVER_LIMIT_S, epoch - COVER_LIMIT_S)
+            state = tf.states([epoch])[0][0]
+        out[tid] = (epoch, state, thrust)
     return out
 
 
@@ -307,6 +321,7 @@ def fit_adjoint(
     initial: Mapping[int, tuple[float, ArrayLike, ThrustStart]],
     biases: Sequence[BiasParameter] = (),
     config: AdjointConfig | None = None,
+    until: float | None = None,
 ) -> AdjointFit:
     """Fit each target's state and thrust control, and the biases, to the raw
     measurements by adjoint assimilation (seed 003; see the module docstring).
@@ -323,6 +338,11 @@ def fit_adjoint(
     biases : sequence of BiasParameter
         Declared systematic errors (``estimate=False`` holds one at its prior).
     config : AdjointConfig, optional
+    until : float, optional
+        Extend each control to this time [s] when it is after the last measurement (at
+        most :data:`COVER_LIMIT_S` after it), so that states and thrust can be reported
+        there; the spline's last piece carries the thrust past the data, and the
+        covariance says how little the data tell of it.
 
     Returns
     -------
@@ -339,7 +359,10 @@ def fit_adjoint(
         last = [t for t in last if t.size]
         if not last:
             raise OrbitTrackingError(f'no measurement of target(s) [{tid}]')
-        models[tid] = cfg.model(float(epoch), max(float(t.max()) for t in last))
+        end = max(float(t.max()) for t in last)
+        if until is not None and math.isfinite(until):
+            end = max(end, min(float(until), end + COVER_LIMIT_S))
+        models[tid] = cfg.model(float(epoch), end)
         starts[tid] = np.concatenate([x0, _start_coefficients(models[tid], x0, thrust)])
     prob = AdjointProblem(obs, models, biases, cfg.smoothness_sigma)
     p = np.concatenate(

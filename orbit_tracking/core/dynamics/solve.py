@@ -244,10 +244,13 @@ def fit_model(
     config: RocketConfig | None = None,
     adjoint: AdjointConfig | None = None,
     starts: Starts | None = None,
+    cover: tuple[float, float] | None = None,
 ) -> DynamicsFit | AdjointFit:
     """:func:`fit_rocket`, or for ``model='adjoint'`` the adjoint assimilation started
     from it (its gravity settings are the rocket config's; the rocket fit need not be a
-    success to start from).
+    success to start from). ``cover`` (first, last) [s] are times the adjoint's flights
+    must reach (report times), up to :data:`~.adjoint.COVER_LIMIT_S` beyond the data;
+    the rocket's flights reach any time.
 
     Raises
     ------
@@ -264,7 +267,8 @@ def fit_model(
         return rocket
     acfg = replace(adjoint or AdjointConfig(), gm=cfg.gm, j2=cfg.j2, rotating=cfg.rotating)
     try:
-        return fit_adjoint(obs, initial_from_rocket(rocket.targets), biases, acfg)
+        first, last = cover if cover is not None else (None, None)
+        return fit_adjoint(obs, initial_from_rocket(rocket.targets, first), biases, acfg, last)
     except FlightError as exc:
         raise OrbitTrackingError(f'the adjoint assimilation failed: {exc}') from exc
 
