@@ -226,6 +226,25 @@ def test_boost_whose_mass_runs_out_inside_the_span_is_rejected() -> None:
         _boost(tau0=170.0)
 
 
+def test_a_second_stage_switches_the_thrust_and_continues_the_flight(
+    boost: dynamics.BoostVehicle,
+) -> None:
+    """The staging at 110 s: same flight before it, the second stage's thrust after it,
+    and the state continuous through it (integrated across, not restarted from zero)."""
+    staged = _boost(tau0=150.0, second_stage=(110.0, 2500.0, 260.0))  # type: ignore[arg-type]
+    first = _boost(tau0=150.0, t_end=110.0)
+    t = np.array([60.0, 109.9, 110.0, 150.0, 170.0])
+    np.testing.assert_allclose(staged.state(t[:2]), first.state(t[:2]), rtol=0.0, atol=1e-6)
+    expected = [3700 / 90.0, 3700 / 40.1, 2500 / 150.0, 2500 / 110.0, 2500 / 90.0]
+    np.testing.assert_allclose(staged.thrust_acceleration(t), expected, rtol=1e-12)
+    x = staged.state(np.array([110.0 - 1e-6, 110.0 + 1e-6]))
+    np.testing.assert_allclose(x[0], x[1], rtol=0.0, atol=1e-2)
+    thrust = staged.acceleration([120.0]) - _two_body(staged.state([120.0])[:, :3], GM_SEED003)
+    assert np.linalg.norm(thrust) == pytest.approx(2500.0 / 140.0, rel=1e-9)
+    with pytest.raises(ValueError, match='second stage'):
+        _boost(tau0=150.0, second_stage=(110.0, 2500.0, 160.0))  # type: ignore[arg-type]
+
+
 # --------------------------------------------------------------------------- powered ascent
 
 

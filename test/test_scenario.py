@@ -248,6 +248,16 @@ def test_boost_that_burns_out_inside_the_span_is_rejected(tmp_path: Path) -> Non
     data['targets'][0]['tau0_s'] = 160.0
     err = _config_error(_write(tmp_path, data))
     assert err.key == 'targets[0].tau0_s'
+    # with a second stage the first burn need only last until the staging
+    data['targets'][0]['second_stage'] = {'time_s': 120.0, 'exhaust_speed_m_s': 2500.0}
+    err = _config_error(_write(tmp_path, data))
+    assert err.key == 'targets[0].second_stage.tau0_s' and 'missing' in err.problem
+    data['targets'][0]['second_stage']['tau0_s'] = 165.0
+    err = _config_error(_write(tmp_path, data))
+    assert err.key == 'targets[0].second_stage.tau0_s' and '> 170' in err.problem
+    data['targets'][0]['second_stage']['tau0_s'] = 260.0
+    scenario = load_scenario(_write(tmp_path, data))
+    assert scenario.targets[0]['second_stage']['time_s'] == 120.0
 
 
 def test_error_in_a_derived_file_names_the_derived_file(tmp_path: Path) -> None:

@@ -5,10 +5,15 @@ their span through dense output.
 Every trajectory exposes the same small interface (:class:`Trajectory`):
 ``state(t) -> (m, 6)`` position and velocity in the world frame, ``acceleration(t)``,
 and the span ``[t_start, t_end]`` in scenario seconds.
+
+The module is a little over the project's ~600-line guide: it holds every truth model the
+simulator flies, side by side on one integrator (:func:`_integrate`) so that they are
+written and checked alike; splitting it would scatter that one piece of machinery.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -262,9 +267,14 @@ class BoostVehicle(_PosVelTrajectory):
     exhaust_speed : float
         Effective exhaust speed v_e [m/s].
     tau0 : float
-        Scenario time at which the mass would reach zero [s]; must exceed ``t_end``.
+        Scenario time at which the mass would reach zero [s]; must exceed ``t_end`` (or
+        the staging time when there is a second stage).
     gm, j2 : float
         Gravity model.
+    second_stage : (time, exhaust_speed, tau0), optional
+        A staging at scenario time ``time`` [s] after which the thrust is ``exhaust_speed
+        / (tau0 - t)`` (``tau0`` [s] past ``t_end``): the second stage of the staged
+        rocket model, simulated independently of it.
     """
 
     def __init__(
@@ -278,23 +288,55 @@ class BoostVehicle(_PosVelTrajectory):
         tau0: float,
         gm: float = frames.WGS84_GM,
         j2: float = 0.0,
+        second_stage: tuple[float, float, float] | None = None,
     ) -> None:
-        if tau0 <= t_end:
-            raise ValueError(f'tau0 ({tau0} s) must exceed the end of the span ({t_end} s)')
+        t_s, c2, tau2 = second_stage if second_stage is not None else (math.inf, 0.0, math.inf)
+        if tau0 <= min(t_end, t_s):
+            raise ValueError(
+                f'tau0 ({tau0} s) must exceed the end of the span ({t_end} s) or the staging'
+            )
+        if second_stage is not None and not (tau2 > t_end and c2 > 0.0):
+            raise ValueError(
+                f'the second stage needs exhaust speed > 0 and tau0 ({tau2} s) past the end '
+                f'of the span ({t_end} s)'
+            )
         self.exhaust_speed = exhaust_speed
         self.tau0 = tau0
+        self.second_stage = second_stage
 
-        def rhs(t: float, y: FloatArray) -> FloatArray:
-            v = y[3:]
-            thrust = exhaust_speed / (tau0 - t) * v / np.linalg.norm(v)
-            return np.concatenate([v, gravity(y[:3], gm, j2) + thrust])
+        def stage(c: float, tau: float) -> Rhs:
+            def rhs(t: float, y: FloatArray) -> FloatArray:
+                v = y[3:]
+                thrust = c / (tau - t) * v / np.linalg.norm(v)
+                return np.concatenate([v, gravity(y[:3], gm, j2) + thrust])
 
+            return rhs
+
+        first, second = stage(exhaust_speed, tau0), stage(c2, tau2)
         y0 = np.concatenate([np.asarray(position, float), np.asarray(velocity, float)])
-        super().__init__(_integrate(lambda _t: rhs, t0, y0, t_start, t_end, atol=_POS_VEL_ATOL))
+        super().__init__(
+            _integrate(
+                lambda t_mid: first if t_mid < t_s else second,
+                t0,
+                y0,
+                t_start,
+                t_end,
+                breakpoints=[t_s] if math.isfinite(t_s) else [],
+                atol=_POS_VEL_ATOL,
+            )
+        )
 
     def thrust_acceleration(self, t: ArrayLike) -> FloatArray:
         """Magnitude of the thrust acceleration [m/s^2], shape (m,)."""
-        return self.exhaust_speed / (self.tau0 - np.atleast_1d(np.asarray(t, float)))
+        tt = np.atleast_1d(np.asarray(t, float))
+        if self.second_stage is None:
+            return self.exhaust_speed / (self.tau0 - tt)
+        t_s, c2, tau2 = self.second_stage
+        late = tt >= t_s
+        out = np.empty_like(tt)
+        out[~late] = self.exhaust_speed / (self.tau0 - tt[~late])
+        out[late] = c2 / (tau2 - tt[late])
+        return out
 
 
 @dataclass(frozen=True)

@@ -11,6 +11,7 @@ for every key.
 
 from __future__ import annotations
 
+import math
 import os
 import zlib
 from collections.abc import Mapping, Sequence
@@ -279,8 +280,11 @@ def scenario_from_dict(data: Mapping[str, Any], source: str = '<dict>') -> Scena
             raise ConfigError(source, 'launch', 'a powered_ascent target needs the launch site')
         if t['model'] in ('powered_ascent', 'aircraft') and d['world_frame'] != 'earth':
             raise ConfigError(source, f'{key}.model', f'{t["model"]} needs world_frame earth')
-        if t['model'] == 'boost' and t['tau0_s'] <= t1:
-            raise ConfigError(source, f'{key}.tau0_s', f'expected > span end {t1}')
+        if t['model'] == 'boost':  # the mass must last (until the staging, if any)
+            stage2 = t['second_stage'] or {'time_s': t1, 'tau0_s': math.inf}
+            for k, end in (('', min(t1, stage2['time_s'])), ('second_stage.', t1)):
+                if (t if not k else stage2)['tau0_s'] <= end:
+                    raise ConfigError(source, f'{key}.{k}tau0_s', f'expected > {end}')
         if t['model'] == 'orbit':
             _check_orbit_state(t, key, source)
     stations = tuple(
@@ -532,6 +536,9 @@ def build_targets(sc: Scenario) -> dict[int, dynamics.Trajectory]:
                 tau0=t['tau0_s'],
                 gm=sc.gm,
                 j2=frames.WGS84_J2 if t['j2'] else 0.0,
+                second_stage=None
+                if (s2 := t['second_stage']) is None
+                else (s2['time_s'], s2['exhaust_speed_m_s'], s2['tau0_s']),
             )
         elif model == 'orbit':
             traj = _orbit(t, sc)

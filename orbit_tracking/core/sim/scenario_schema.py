@@ -90,6 +90,18 @@ _TARGETS = Tagged(
                 'exhaust_speed_m_s': (Num(gt=0.0), REQUIRED),
                 'tau0_s': (Num(), REQUIRED),
                 'j2': (Bool(), False),
+                'second_stage': (
+                    Nullable(
+                        Obj(
+                            {
+                                'time_s': (Num(), REQUIRED),
+                                'exhaust_speed_m_s': (Num(gt=0.0), REQUIRED),
+                                'tau0_s': (Num(), REQUIRED),
+                            }
+                        )
+                    ),
+                    None,
+                ),
             }
         ),
         'orbit': Obj({'id': (Num(integer=True, ge=0), REQUIRED), **_ORBIT_STATE}),
