@@ -84,6 +84,44 @@ def test_the_sensitivities_are_the_finite_differences_of_the_flight(
         assert np.abs(fd - sens[:, :, k]).max() <= 1e-6 * np.abs(sens[:, :, k]).max()
 
 
+def test_a_jump_in_the_control_is_a_full_knot_and_its_pieces_are_the_spline() -> None:
+    """A staging at 73.7 s: one clamped spline on each side (the spacing restarting at the
+    jump), right-continuous there, and the per-interval Taylor pieces the right-hand sides
+    use equal to the spline itself on both sides."""
+    ctl = ThrustControl(50.0, 120.0, 10.0, 'velocity', (73.7,))
+    plain = ThrustControl(50.0, 120.0, 10.0)
+    assert 73.7 in ctl.breaks and ctl.n_coef == (3 + 3) + (5 + 3)  # intervals + degree
+    assert np.count_nonzero(ctl.knots == 73.7) == 4 and plain.n_coef == 10
+    coef = np.cos(np.arange(ctl.n_coef))
+    t = np.array([50.0, 60.3, 73.7 - 1e-9, 73.7, 73.7 + 1e-9, 99.0, 120.0])
+    v = ctl.values(coef, t)
+    assert abs(v[2] - v[3]) > 1e-3 and abs(v[3] - v[4]) < 1e-6  # a jump, right-continuous
+    k = np.clip(np.searchsorted(ctl.breaks, t, side='right') - 1, 0, ctl.breaks.size - 2)
+    s = (t - 0.5 * (ctl.breaks[k] + ctl.breaks[k + 1]))[:, None]
+    p = ctl.pieces[k]
+    np.testing.assert_allclose((p[:, 0] + s * (p[:, 1] + s * (p[:, 2] + s * p[:, 3]))) @ coef, v)
+    assert ThrustControl(50.0, 120.0, 10.0, jumps=(50.5, 130.0)).n_coef == plain.n_coef
+
+
+def test_the_sensitivities_cross_a_jump() -> None:
+    model = ThrustSplineModel(ThrustControl(50.0, 90.0, 10.0, 'velocity', (71.3,)), GM)
+    x0 = build_targets(load_scenario('seed003_q2'))[0].state([50.0])[0]
+    t = np.linspace(50.0, 90.0, 41)
+    thrust = np.where(t < 71.3, 3700.0 / (200.0 - t), 2500.0 / (150.0 - (t - 71.3)))
+    theta = np.concatenate([x0, model.control.fit(t, thrust)])
+    t = np.linspace(60.0, 90.0, 7)
+    sens = model.propagate(theta, t).sensitivity
+    assert sens is not None
+    for k in range(theta.size):
+        h = 1.0 if k < 3 else 1e-3
+        e = np.zeros(theta.size)
+        e[k] = h
+        fd = (
+            model.propagate(theta + e, t, False).state - model.propagate(theta - e, t, False).state
+        ) / (2 * h)
+        assert np.abs(fd - sens[:, :, k]).max() <= 1e-6 * np.abs(sens[:, :, k]).max()
+
+
 @pytest.mark.parametrize('direction', ['velocity', 'free'])
 @pytest.mark.parametrize('biases', [False, True])
 def test_the_adjoint_gradient_is_the_finite_differences_of_the_cost(

@@ -162,8 +162,8 @@ class AdjointConfig:
             raise ValueError(f'smoothness_sigma must be > 0; got {self.smoothness_sigma}')
         ThrustControl(0.0, 1.0, self.knot_spacing, self.direction)  # checks both
 
-    def model(self, t0: float, t1: float) -> ThrustSplineModel:
-        control = ThrustControl(t0, t1, self.knot_spacing, self.direction)
+    def model(self, t0: float, t1: float, jumps: Sequence[float] = ()) -> ThrustSplineModel:
+        control = ThrustControl(t0, t1, self.knot_spacing, self.direction, tuple(jumps))
         rate = 7.2921150e-5 if self.rotating else 0.0
         return ThrustSplineModel(control, self.gm, self.j2, frames.WGS84_A, rate)
 
@@ -285,7 +285,9 @@ def _start_coefficients(
     if ctl.components == 1:
         return ctl.fit(grid, vals if vals.ndim == 1 else np.linalg.norm(vals, axis=1))
     if vals.ndim == 1:
-        along = replace(model, control=ThrustControl(ctl.t0, ctl.t1, ctl.knot_spacing))
+        along = replace(
+            model, control=ThrustControl(ctl.t0, ctl.t1, ctl.knot_spacing, jumps=ctl.jumps)
+        )
         theta = np.concatenate([state, along.control.fit(grid, vals)])
         v = along.forward(theta)(grid)[:, 3:6]
         vals = vals[:, None] * v / np.linalg.norm(v, axis=1)[:, None]
@@ -322,6 +324,7 @@ def fit_adjoint(
     biases: Sequence[BiasParameter] = (),
     config: AdjointConfig | None = None,
     until: float | None = None,
+    jumps: Mapping[int, Sequence[float]] | None = None,
 ) -> AdjointFit:
     """Fit each target's state and thrust control, and the biases, to the raw
     measurements by adjoint assimilation (seed 003; see the module docstring).
@@ -343,6 +346,9 @@ def fit_adjoint(
         most :data:`COVER_LIMIT_S` after it), so that states and thrust can be reported
         there; the spline's last piece carries the thrust past the data, and the
         covariance says how little the data tell of it.
+    jumps : mapping of target id to times, optional
+        Where each target's thrust may jump (a staging the rocket fit found): the spline
+        gets a discontinuity there (:class:`~.thrust_spline.ThrustControl`).
 
     Returns
     -------
@@ -362,7 +368,7 @@ def fit_adjoint(
         end = max(float(t.max()) for t in last)
         if until is not None and math.isfinite(until):
             end = max(end, min(float(until), end + COVER_LIMIT_S))
-        models[tid] = cfg.model(float(epoch), end)
+        models[tid] = cfg.model(float(epoch), end, (jumps or {}).get(tid, ()))
         starts[tid] = np.concatenate([x0, _start_coefficients(models[tid], x0, thrust)])
     prob = AdjointProblem(obs, models, biases, cfg.smoothness_sigma)
     p = np.concatenate(
@@ -446,6 +452,7 @@ def adjoint_bound(
     truth: Mapping[int, tuple[float, ArrayLike, ThrustStart]],
     biases: Sequence[BiasParameter] = (),
     config: AdjointConfig | None = None,
+    jumps: Mapping[int, Sequence[float]] | None = None,
 ) -> dict[int, AdjointFlight]:
     """The Cramér–Rao bound of the adjoint model: its information (every measured value,
     the bias priors at their ``prior``) at the true state and the thrust spline closest to
@@ -461,7 +468,7 @@ def adjoint_bound(
             for s in obs.stations
             if np.any(s.table.target_id == tid)
         )
-        models[tid] = cfg.model(float(epoch), last)
+        models[tid] = cfg.model(float(epoch), last, (jumps or {}).get(tid, ()))
         starts[tid] = np.concatenate([x0, _start_coefficients(models[tid], x0, thrust)])
     prob = AdjointProblem(obs, models, biases, cfg.smoothness_sigma)
     p = np.concatenate(

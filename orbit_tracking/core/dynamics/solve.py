@@ -5,12 +5,13 @@ each, the best kept (seed 003, issue 15)."""
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy import stats
 
 from orbit_tracking.core import frames
 from orbit_tracking.core.data.observations import Observations
@@ -22,9 +23,10 @@ from orbit_tracking.core.dynamics.adjoint import (
 )
 from orbit_tracking.core.dynamics.fit import DynamicsFit, FitConfig, FlightModel, fit_dynamics
 from orbit_tracking.core.dynamics.observability import bias_estimates, classify
+from orbit_tracking.core.dynamics.range_search import start_candidates
 from orbit_tracking.core.dynamics.rocket import FlightError, RocketModel
-from orbit_tracking.core.dynamics.staging import StagedRocketModel, staged_start
-from orbit_tracking.core.dynamics.start import rough_fixes, start_candidates, start_from_fixes
+from orbit_tracking.core.dynamics.staging import STAGED_PARAMETERS, StagedRocketModel, staged_start
+from orbit_tracking.core.dynamics.start import rough_fixes, start_from_fixes
 from orbit_tracking.core.errors import OrbitTrackingError
 from orbit_tracking.core.estimation.results import Estimate, TargetSolution
 from orbit_tracking.core.models.systematic import BiasParameter
@@ -53,6 +55,13 @@ STAGING_SCOUT_ITERATIONS = 6
 SCOUT_ITERATIONS = 12
 """Levenberg-Marquardt steps each start of a search gets before the best goes on."""
 
+STAGING_EVIDENCE = float(stats.chi2.ppf(0.999, 3))
+"""Cost decrease (chi-square, three more parameters, 0.1 % false alarm) that makes the
+automatic choice prefer two stages to one consistent burn."""
+
+FULL_STARTS = 3
+"""Scouted starts fitted to the end (:func:`_fit_best`)."""
+
 EARTH_RATE = 7.2921150e-5
 """The Earth's rotation rate [rad/s] (for the rotating ``earth`` world frame)."""
 
@@ -71,7 +80,10 @@ class RocketConfig:
         The altitude band [m] the range hypotheses of a single station's start search.
     stages : int
         1: one burn; 2: a staging at an unknown time and a second stage
-        (:mod:`~.staging`); 0 (auto): one, and two when one is not a success.
+        (:mod:`~.staging`); 0 (auto): one, and two as well unless one burn's
+        chi-square is as white noise gives it; two are kept when one burn is not a
+        success or when they lower the cost by more than :data:`STAGING_EVIDENCE` (a
+        staging that leaves one burn consistent can still bias it by several sigma).
     fit : FitConfig
     """
 
@@ -161,7 +173,7 @@ def fit_rocket(
     Each target starts from its fixes (``obs.fixes``) when it has some, else from rough
     fixes made from the rows (:func:`~.start.rough_fixes`: radar points, two stations'
     crossing lines), else from the range-hypothesis search on the angles of the station
-    that sees it most (:func:`~.start.start_candidates`); ``starts`` (from
+    that sees it most (:func:`~.range_search.start_candidates`); ``starts`` (from
     :func:`start_points`) skips that search when it was made already. With several starts
     each is
     fitted a few steps (:data:`SCOUT_ITERATIONS`, biases held) and the fit goes on from the
@@ -179,10 +191,10 @@ def fit_rocket(
         raise OrbitTrackingError('no station measurement of any target to fit')
     n_alt = max(len(v) for v in starts.values())
     errors = []
+    ranked: list[tuple[float, dict[int, tuple[FlightModel, FloatArray]]]] = []  # by cost
     if n_alt > 1:  # scout every start a few steps, biases held; go on from the best
         scout = replace(cfg.fit, max_iterations=SCOUT_ITERATIONS, gate_passes=1)
         held = [replace(b, estimate=False) for b in biases]
-        best_cost, best_start = math.inf, None
         for k in range(n_alt):
             initial = {tid: s[min(k, len(s) - 1)] for tid, s in starts.items()}
             try:
@@ -190,50 +202,106 @@ def fit_rocket(
             except FlightError as exc:
                 errors.append(str(exc))
                 continue
-            if trial.cost < best_cost:
-                best_cost = trial.cost
-                best_start = {t: (m, trial.targets[t].theta) for t, (m, _) in initial.items()}
-        if best_start is None:
+            scouted: dict[int, tuple[FlightModel, FloatArray]] = {
+                t: (m, trial.targets[t].theta) for t, (m, _) in initial.items()
+            }
+            ranked.append((trial.cost, scouted))
+        if not ranked:
             raise OrbitTrackingError('no start could be flown: ' + '; '.join(errors))
-        first = best_start
+        ranked.sort(key=lambda c: c[0])
     else:
-        first = {tid: s[0] for tid, s in starts.items()}
-    try:
-        single = fit_dynamics(obs, first, biases, cfg.fit)
-    except FlightError as exc:
-        raise OrbitTrackingError(f'the rocket fit failed: {exc}') from exc
-    if cfg.stages == 1 or (cfg.stages == 0 and single.success):
+        ranked = [(0.0, {tid: s[0] for tid, s in starts.items()})]
+    by_target = {tid: [d[tid] for _, d in ranked] for tid in ranked[0][1]}
+    single = _fit_best(obs, by_target, biases, cfg, 'the rocket fit failed')
+    if cfg.stages == 1 or (cfg.stages == 0 and single.success and _white(single)):
         return single
-    staged = fit_dynamics(obs, _staged_starts(obs, single, biases, cfg), biases, cfg.fit)
-    if cfg.stages == 2 or staged.success or staged.chi2_dof < single.chi2_dof:
+    sources = {
+        tid: [(tf.model, tf.theta), ranked[0][1][tid]] for tid, tf in single.targets.items()
+    }
+    try:
+        staged = _fit_best(
+            obs, _staged_starts(obs, sources, biases, cfg), biases, cfg, 'no staging flew'
+        )
+    except OrbitTrackingError as exc:
+        if cfg.stages == 2:
+            raise OrbitTrackingError(f'the two-stage fit failed: {exc}') from exc
+        return single
+    if cfg.stages == 2:
         return staged
-    return single
+    if single.success:  # a staging must earn its three parameters (likelihood ratio)
+        gain = single.cost - staged.cost
+        return staged if staged.success and gain > STAGING_EVIDENCE else single
+    return staged if staged.success or staged.chi2_dof < single.chi2_dof else single
+
+
+def _white(fit: DynamicsFit) -> bool:
+    """Whether a fit's chi-square is within three of its standard deviations of its
+    degrees of freedom: nothing left for a staging to explain (the automatic choice
+    then skips the two-stage search, which costs a hundred one-stage fits)."""
+    return fit.chi2_dof <= 1.0 + 3.0 * math.sqrt(2.0 / max(fit.dof, 1))
 
 
 def _staged_starts(
-    obs: Observations, single: DynamicsFit, biases: Sequence[BiasParameter], cfg: RocketConfig
-) -> dict[int, tuple[FlightModel, FloatArray]]:
-    """Each target's two-stage start: the single-stage fit continued by a second stage
-    from a staging on a :data:`STAGING_GRID_S` grid over its span, the grid point whose
-    few scouting steps (that target alone, biases held) end at the lowest cost."""
+    obs: Observations,
+    sources: Mapping[int, Sequence[tuple[FlightModel, FloatArray]]],
+    biases: Sequence[BiasParameter],
+    cfg: RocketConfig,
+) -> dict[int, list[tuple[FlightModel, FloatArray]]]:
+    """Each target's two-stage starts, best first: each one-stage source (the one-stage
+    fit, and the start it came from, which a diverged fit cannot spoil) continued by a
+    second stage from a staging on a :data:`STAGING_GRID_S` grid over the target's
+    span; each is scouted a few steps (that target alone, biases held), and the best
+    source of each staging time is kept, ranked by its cost."""
     scout = replace(cfg.fit, max_iterations=STAGING_SCOUT_ITERATIONS, gate_passes=1)
     held = [replace(b, estimate=False) for b in biases]
-    out: dict[int, tuple[FlightModel, FloatArray]] = {}
-    for tid, tf in single.targets.items():
-        model = cfg.staged_model(tf.model.epoch)
-        best_cost, best = math.inf, None
-        for t_s in np.arange(tf.t0 + STAGING_GRID_S, tf.t1 - 0.5 * STAGING_GRID_S, STAGING_GRID_S):
-            start = staged_start(tf.theta, float(t_s), tf.model.epoch)
-            try:
-                trial = fit_dynamics(obs, {tid: (model, start)}, held, scout)
-            except FlightError:
-                continue
-            if trial.cost < best_cost:
-                best_cost, best = trial.cost, trial.targets[tid].theta
-        if best is None:
+    out: dict[int, list[tuple[FlightModel, FloatArray]]] = {}
+    for tid, flights in sources.items():
+        epoch = flights[0][0].epoch
+        model = cfg.staged_model(epoch)
+        times = [s.table.time[s.table.target_id == tid] for s in obs.stations]
+        t0 = min(float(t.min()) for t in times if t.size)
+        t1 = max(float(t.max()) for t in times if t.size)
+        best: dict[float, tuple[float, FloatArray]] = {}
+        for t_s in np.arange(t0 + STAGING_GRID_S, t1 - 0.5 * STAGING_GRID_S, STAGING_GRID_S):
+            for _, theta in flights:
+                start = staged_start(theta, float(t_s), epoch)
+                try:
+                    trial = fit_dynamics(obs, {tid: (model, start)}, held, scout)
+                except FlightError:
+                    continue
+                if trial.cost < best.get(float(t_s), (math.inf, None))[0]:
+                    best[float(t_s)] = (trial.cost, trial.targets[tid].theta)
+        if not best:
             raise OrbitTrackingError(f'target {tid}: no staging time gave a flight')
-        out[tid] = (model, best)
+        out[tid] = [(model, th) for _, th in sorted(best.values(), key=lambda c: c[0])]
     return out
+
+
+def _fit_best(
+    obs: Observations,
+    ranked: Mapping[int, Sequence[tuple[FlightModel, FloatArray]]],
+    biases: Sequence[BiasParameter],
+    cfg: RocketConfig,
+    failure: str,
+) -> DynamicsFit:
+    """The full fit from each of the :data:`FULL_STARTS` best starts (the k-th of every
+    target together; one satellite's angles and the staging time have several valleys,
+    and the best after scouting is not always the deepest); the success of lowest cost,
+    else the lowest cost."""
+    best: DynamicsFit | None = None
+    errors = []
+    for k in range(min(FULL_STARTS, max(len(v) for v in ranked.values()))):
+        initial = {tid: v[min(k, len(v) - 1)] for tid, v in ranked.items()}
+        try:
+            trial = fit_dynamics(obs, initial, biases, cfg.fit)
+        except FlightError as exc:
+            errors.append(str(exc))
+            continue
+        if best is None or (trial.success, -trial.cost) > (best.success, -best.cost):
+            best = trial
+    if best is None:
+        raise OrbitTrackingError(f'{failure}: ' + '; '.join(errors))
+    return best
 
 
 def fit_model(
@@ -268,7 +336,14 @@ def fit_model(
     acfg = replace(adjoint or AdjointConfig(), gm=cfg.gm, j2=cfg.j2, rotating=cfg.rotating)
     try:
         first, last = cover if cover is not None else (None, None)
-        return fit_adjoint(obs, initial_from_rocket(rocket.targets, first), biases, acfg, last)
+        jumps = {  # where the rocket fit found a staging, the thrust spline may jump
+            tid: (float(tf.theta[STAGED_PARAMETERS.index('staging_time')]),)
+            for tid, tf in rocket.targets.items()
+            if isinstance(tf.model, StagedRocketModel)
+        }
+        return fit_adjoint(
+            obs, initial_from_rocket(rocket.targets, first), biases, acfg, last, jumps
+        )
     except FlightError as exc:
         raise OrbitTrackingError(f'the adjoint assimilation failed: {exc}') from exc
 

@@ -7,31 +7,23 @@
 * **Rough fixes from the rows themselves** (:func:`rough_fixes`), when no fixes came
   with the data: a pulse radar's range along its line of sight, or the midpoint of the
   common perpendicular of two stations' lines of sight at nearly the same epoch.
-* **From one station's lines of sight alone** (:func:`start_from_lines`): a search over
-  range hypotheses (an admissible region): the vehicle lies on the first and on the last
-  line of sight at altitudes between ``min_altitude`` and ``max_altitude``; for each pair
-  of ranges on a grid the flight through both points (state at the epoch from the chord,
-  thrust from the defaults) is scored by its misfit of every line of sight, and the best
-  few are refined by Levenberg-Marquardt (:func:`~.fit.fit_dynamics`); the lowest cost wins.
+* **From one station's lines of sight alone**: :mod:`.range_search`.
 """
 
 from __future__ import annotations
 
 import math
-from itertools import product
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import least_squares
 
-from orbit_tracking.core import frames
 from orbit_tracking.core.data.observations import FixSeries, StationObservations
 from orbit_tracking.core.dynamics.rocket import RocketModel
 from orbit_tracking.core.errors import OrbitTrackingError
 from orbit_tracking.core.models.dynamics import gravity
-from orbit_tracking.core.models.measurements import los_unit_vectors, predict, residual
+from orbit_tracking.core.models.measurements import los_unit_vectors
 
-__all__ = ['DEFAULT_EXHAUST_SPEED', 'rough_fixes', 'start_candidates', 'start_from_fixes']
+__all__ = ['DEFAULT_EXHAUST_SPEED', 'angle_fields', 'rough_fixes', 'start_from_fixes']
 
 FloatArray = NDArray[np.float64]
 
@@ -95,137 +87,18 @@ def start_from_fixes(fixes: FixSeries, model: RocketModel, degree: int = 4) -> F
     return theta
 
 
-def _band(
-    origin: FloatArray, unit: FloatArray, lo: float, hi: float
-) -> tuple[float, float] | None:
-    """The stretch of ranges ``rho >= 0`` on the ray ``origin + rho unit`` between the radii
-    ``lo`` and ``hi``, nearest the origin (None if the ray misses the shell)."""
-    b = float(origin @ unit)
-    c0 = float(origin @ origin)
-
-    def roots(radius: float) -> tuple[float, float] | None:
-        disc = b * b - (c0 - radius * radius)
-        if disc < 0.0:
-            return None
-        q = math.sqrt(disc)
-        return -b - q, -b + q
-
-    outer = roots(hi)
-    if outer is None:
-        return None
-    inner = roots(lo)
-    a = max(outer[0], 0.0)
-    e = inner[0] if inner is not None and inner[0] > a else outer[1]
-    return (a, e) if e > a else None
-
-
-def _angles(
+def angle_fields(
     st: StationObservations, rows: NDArray[np.intp]
 ) -> tuple[tuple[str, ...], FloatArray, FloatArray]:
+    """The angle fields a station measures, and their values and sigmas at ``rows``."""
     tab = st.table
     fields = tuple(f for f in tab.fields if f in ('azimuth', 'elevation', 'los_alpha', 'los_beta'))
     cols = np.array([tab.fields.index(f) for f in fields], dtype=np.intp)
     return fields, tab.values[np.ix_(rows, cols)], tab.sigmas[np.ix_(rows, cols)]
 
 
-def start_candidates(
-    st: StationObservations,
-    target_id: int,
-    model: RocketModel,
-    min_altitude: float = 0.0,
-    max_altitude: float = 1.5e6,
-    n_range: int = 12,
-    keep: int = 4,
-) -> list[FloatArray]:
-    """Rocket parameters to start from when one station's angles are all there is.
-
-    Range hypotheses: at the first, middle and last epochs the vehicle lies on the line of
-    sight at a range where its altitude is within ``[min_altitude, max_altitude]`` (the
-    ray's first crossing of that shell: the admissible region). Every triple of ranges on
-    an ``n_range`` grid defines a parabola in time; each is scored by its misfit of the
-    station's angles (at most 200 epochs), the ``keep`` best are refined over their three
-    ranges by least squares, and each becomes rocket parameters through
-    :func:`start_from_fixes` (degree 2). Best first.
-
-    Raises
-    ------
-    OrbitTrackingError
-        Too few rows, or no line of sight crosses the altitude band.
-    """
-    tab = st.table
-    rows = np.flatnonzero(tab.target_id == target_id)
-    if rows.size < 10:
-        raise OrbitTrackingError(
-            f'target {target_id}: {rows.size} rows of {tab.station_id} are too few to start from'
-        )
-    fields, vals, sig = _angles(st, rows)
-    if len(fields) != 2:
-        raise OrbitTrackingError(f'{tab.station_id} measures no pair of angles')
-    kind = 'los' if 'los_alpha' in fields else 'angles'
-    t = tab.time[rows]
-    pose = st.pose.take(rows)
-    units = los_unit_vectors(kind, vals, fields, pose.rotation)
-    if kind == 'los':  # the line, not the ray: point it toward the Earth's centre
-        flip = np.einsum('mi,mi->m', units, pose.position) > 0.0
-        units[flip] *= -1.0
-    pick = np.unique(np.linspace(0, rows.size - 1, 3).round().astype(int))
-    if pick.size < 3:
-        raise OrbitTrackingError(f'target {target_id}: too few epochs to start from')
-    r_lo, r_hi = frames.WGS84_B + min_altitude, frames.WGS84_A + max_altitude
-    grids = []
-    for i in pick:
-        band = _band(pose.position[i], units[i], r_lo, r_hi)
-        if band is None:
-            raise OrbitTrackingError(
-                f'target {target_id}: the line of sight of {tab.station_id} at {t[i]:.3f} s '
-                f'misses the altitude band [{min_altitude:.0f}, {max_altitude:.0f}] m'
-            )
-        grids.append(np.linspace(band[0], band[1], n_range))
-    lo_b = np.array([g[0] for g in grids])
-    hi_b = np.array([g[-1] for g in grids])
-    score_rows = np.unique(np.linspace(0, rows.size - 1, min(rows.size, 200)).round().astype(int))
-    ts = t[pick]
-    span = float(t[-1] - t[0]) or 1.0
-
-    def curve(rho: FloatArray) -> FloatArray:
-        pts = pose.position[pick] + rho[:, None] * units[pick]
-        coef = np.polyfit((ts - t[0]) / span, pts, 2)  # (3, 3): parabola per axis
-        s = (t[score_rows] - t[0]) / span
-        return np.stack([np.polyval(coef[:, k], s) for k in range(3)], axis=1)
-
-    def misfit(rho: FloatArray) -> FloatArray:
-        p = curve(rho)
-        x = np.hstack([p, np.zeros_like(p)])
-        h, _ = predict(fields, x, pose.take(score_rows))
-        r = residual(fields, vals[score_rows], h) / sig[score_rows]
-        return np.nan_to_num(r, nan=0.0, posinf=1e9, neginf=-1e9).ravel()
-
-    scored = []
-    for triple in product(*grids):
-        rr = misfit(np.asarray(triple))
-        scored.append((float(rr @ rr), np.asarray(triple)))
-    scored.sort(key=lambda c: c[0])
-    out: list[tuple[float, FloatArray]] = []
-    for _, rho in scored[:keep]:
-        sol = least_squares(misfit, rho, x_scale=1e3, max_nfev=200, bounds=(lo_b, hi_b))
-        p = curve(sol.x)
-        fx = FixSeries(
-            target_id,
-            t[score_rows],
-            p,
-            np.tile(np.eye(3), (score_rows.size, 1, 1)),
-        )
-        try:
-            out.append((float(sol.cost), start_from_fixes(fx, model, degree=2)))
-        except OrbitTrackingError:
-            continue
-    if not out:
-        raise OrbitTrackingError(f'target {target_id}: no range hypothesis gave a start')
-    return [th for _, th in sorted(out, key=lambda c: c[0])]
-
-
 def _units(st: StationObservations, rows: NDArray[np.intp]) -> FloatArray | None:
-    fields, vals, _ = _angles(st, rows)
+    fields, vals, _ = angle_fields(st, rows)
     if len(fields) != 2:
         return None
     kind = 'los' if 'los_alpha' in fields else 'angles'

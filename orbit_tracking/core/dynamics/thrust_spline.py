@@ -66,12 +66,17 @@ class ThrustControl:
     knot_spacing : float
         Largest distance between knots [s]; the interior knots are evenly spaced.
     direction : {'velocity', 'free'}
+    jumps : tuple of float
+        Times [s] where the thrust may jump (a staging): a knot of full multiplicity
+        there, the even spacing restarting from it; those within a second of the span's
+        ends are ignored.
     """
 
     t0: float
     t1: float
     knot_spacing: float = 10.0
     direction: str = 'velocity'
+    jumps: tuple[float, ...] = ()
     knots: FloatArray = field(init=False, repr=False, compare=False)
     breaks: FloatArray = field(init=False, repr=False, compare=False)
     pieces: FloatArray = field(init=False, repr=False, compare=False)
@@ -83,17 +88,37 @@ class ThrustControl:
             raise ValueError(f'knot_spacing must be > 0 s; got {self.knot_spacing}')
         if self.direction not in DIRECTIONS:
             raise ValueError(f'direction must be one of {DIRECTIONS}; got {self.direction!r}')
-        n_int = max(math.ceil((self.t1 - self.t0) / self.knot_spacing - 1e-9) - 1, 0)
-        breaks = np.linspace(self.t0, self.t1, n_int + 2)
-        knots = clamped_knots(breaks[1:-1], self.t0, self.t1, 3)
-        # per knot interval, the Taylor coefficients of every basis function about its
-        # middle (cubic, so exact): the right-hand sides evaluate them by Horner's rule
-        basis = BSpline(knots, np.eye(knots.size - 4), 3)
-        mid = 0.5 * (breaks[:-1] + breaks[1:])
-        pieces = np.stack(
-            [basis.derivative(k)(mid) / math.factorial(k) if k else basis(mid) for k in range(4)],
-            axis=1,
-        )  # (n_pieces, 4, n_coef)
+        cuts = sorted(j for j in self.jumps if self.t0 + 1.0 < j < self.t1 - 1.0)
+        ends = [self.t0, *cuts, self.t1]
+        # one clamped cubic spline per stretch between jumps (together: the spline with a
+        # knot of multiplicity four at each jump); per knot interval, the Taylor
+        # coefficients of every basis function about its middle (cubic, so exact): the
+        # right-hand sides evaluate them by Horner's rule
+        seg_breaks, seg_pieces = [], []
+        for a, b in zip(ends[:-1], ends[1:], strict=True):
+            br = np.linspace(a, b, max(math.ceil((b - a) / self.knot_spacing - 1e-9), 1) + 1)
+            kn = clamped_knots(br[1:-1], a, b, 3)
+            basis = BSpline(kn, np.eye(kn.size - 4), 3)
+            mid = 0.5 * (br[:-1] + br[1:])
+            seg_breaks.append(br)
+            seg_pieces.append(
+                np.stack(
+                    [
+                        basis.derivative(k)(mid) / math.factorial(k) if k else basis(mid)
+                        for k in range(4)
+                    ],
+                    axis=1,
+                )  # (n_pieces, 4, n_coef of the stretch)
+            )
+        n_coef = sum(p.shape[2] for p in seg_pieces)
+        pieces = np.zeros((sum(p.shape[0] for p in seg_pieces), 4, n_coef))
+        row = col = 0
+        for p in seg_pieces:
+            pieces[row : row + p.shape[0], :, col : col + p.shape[2]] = p
+            row, col = row + p.shape[0], col + p.shape[2]
+        breaks = np.unique(np.concatenate(seg_breaks))
+        inner = np.sort(np.concatenate([breaks[1:-1], np.repeat(cuts, 3)]))
+        knots = np.concatenate([np.full(4, self.t0), inner, np.full(4, self.t1)])
         object.__setattr__(self, 'knots', knots)
         object.__setattr__(self, 'breaks', breaks)
         object.__setattr__(self, 'pieces', pieces)

@@ -8,9 +8,13 @@ Each draw (:func:`seed003_draw`, seeded):
   random point of the Earth, 700-1600 m/s at 25-65 deg above the local horizon toward a
   random azimuth; thrust along the velocity with exhaust speed 2500-4200 m/s and mass time
   130-260 s at the start;
-* **two or three satellites** on two-body orbits 1500-4500 km above the Earth,
-  10-45 deg of arc from the vehicle's start, moving in a random direction (circular speed
-  times 0.98-1.02); the Earth hides the vehicle from a satellite when it is in the way;
+* **a second stage** in a third of the draws: a staging 20-100 s after the start to an
+  exhaust speed of 2500-4500 m/s, its mass time 40-130 s longer than what is left of the
+  flight;
+* **one, two or three satellites** (a quarter, 40 %, 35 % of the draws) on two-body
+  orbits 1500-4500 km above the Earth, 10-45 deg of arc from the vehicle's start, moving in
+  a random direction (circular speed times 0.98-1.02); the Earth hides the vehicle from a
+  satellite when it is in the way;
 * **noise** 2e-6 to 1.5e-5 per satellite, 5 Hz, unsynchronised;
 * **systematic errors** in half of the draws: each satellite's (d_alpha, d_beta, d_theta)
   normal with sigma 3e-4.
@@ -79,7 +83,7 @@ def seed003_draw(seed: int) -> dict[str, Any]:
         target = np.array(
             [r0 + _unit(v0) * (speed * t + 0.5 * mean_acc * t * t) for t in (0.0, 60.0, 120.0)]
         )
-        n_sat = int(rng.integers(2, 4))
+        n_sat = int(rng.choice([1, 2, 3], p=[0.25, 0.4, 0.35]))
         stations = []
         ok = True
         for k in range(n_sat):
@@ -110,6 +114,14 @@ def seed003_draw(seed: int) -> dict[str, Any]:
             stations.append(station)
         if not ok:
             continue
+        second = None
+        if rng.uniform() < 1.0 / 3.0:
+            t_s = T0 + float(rng.uniform(20.0, 100.0))
+            second = {
+                'time_s': t_s,
+                'exhaust_speed_m_s': float(rng.uniform(2500.0, 4500.0)),
+                'tau0_s': T0 + SPAN + float(rng.uniform(40.0, 130.0)),
+            }
         biased = bool(rng.integers(0, 2))
         if biased:
             for st in stations:
@@ -135,6 +147,7 @@ def seed003_draw(seed: int) -> dict[str, Any]:
                     'velocity': v0.tolist(),
                     'exhaust_speed_m_s': float(c),
                     'tau0_s': float(T0 + tau),
+                    'second_stage': second,
                 }
             ],
             'stations': stations,

@@ -33,7 +33,7 @@ from scipy import stats
 
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.dynamics.adjoint import AdjointConfig, adjoint_bound
-from orbit_tracking.core.dynamics.fit import TargetFlight, bound_at
+from orbit_tracking.core.dynamics.fit import FlightModel, TargetFlight, bound_at
 from orbit_tracking.core.dynamics.quadratic import QuadraticTrack
 from orbit_tracking.core.dynamics.solve import RocketConfig, fit_model
 from orbit_tracking.core.errors import OrbitTrackingError
@@ -44,10 +44,8 @@ from orbit_tracking.core.models.systematic import BiasParameter
 from orbit_tracking.core.sim.scenario import (
     Scenario,
     load_scenario,
-    scenario_from_dict,
     truth_biases,
 )
-from orbit_tracking.core.sim.seed003_family import seed003_draw
 from orbit_tracking.core.sim.simulator import SimulationResult, World, simulate
 from orbit_tracking.core.sim.stream import feed_simulation
 from orbit_tracking.core.triangulation.intersection import Gates
@@ -56,12 +54,12 @@ from orbit_tracking.tools.bench.biases import declare_biases
 
 __all__ = [
     'SEED003_SCENARIOS',
-    'FamilyDraw',
     'Seed003Row',
     'bench_seed003',
-    'bench_seed003_family',
-    'family_table',
+    'observations_of',
+    'score_states',
     'seed003_tables',
+    'truth_flight_models',
 ]
 
 SEED003_SCENARIOS: tuple[str, ...] = (
@@ -102,30 +100,41 @@ class Seed003Row:
     wall: list[float] = field(default_factory=list)
 
 
-def _truth_flights(sc: Scenario) -> dict[int, tuple[float, np.ndarray]]:
-    out = {}
+def truth_flight_models(
+    sc: Scenario, cfg: RocketConfig
+) -> dict[int, tuple[FlightModel, np.ndarray]]:
+    """Each boost target's true flight as (model, parameters) of the rocket model, or of
+    the staged model where the scenario gives it a second stage (for the bounds)."""
+    out: dict[int, tuple[FlightModel, np.ndarray]] = {}
     for t in sc.targets:
-        theta = np.array(
-            [*t['position'], *t['velocity'], t['exhaust_speed_m_s'], t['tau0_s'] - t['t0']],
-            dtype=np.float64,
-        )
-        out[int(t['id'])] = (float(t['t0']), theta)
+        t0 = float(t['t0'])
+        theta = [*t['position'], *t['velocity'], t['exhaust_speed_m_s'], t['tau0_s'] - t0]
+        second = t.get('second_stage')
+        if second is None:
+            out[int(t['id'])] = (cfg.model(t0), np.array(theta, dtype=np.float64))
+        else:
+            ts = float(second['time_s'])
+            theta += [ts, second['exhaust_speed_m_s'], second['tau0_s'] - ts]
+            out[int(t['id'])] = (cfg.staged_model(t0), np.array(theta, dtype=np.float64))
     return out
 
 
-def _observations(result: SimulationResult) -> Observations:
+def observations_of(result: SimulationResult) -> Observations:
+    """A simulation's rows with the fixes triangulated without the miss gate."""
     pipe = TriangulationPipeline(gates=Gates(miss_probability=1.0))
     feed_simulation(pipe, result)
     return Observations.from_simulation(result, fix_series(pipe.flush()))
 
 
-def _score(
+def score_states(
     row: Seed003Row,
     result: SimulationResult,
     tid: int,
     states: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
     bound: TargetFlight,
 ) -> None:
+    """Add one target's squared errors, bound traces and NEES (every
+    :data:`NEES_STRIDE_S`) over the bound's span to ``row``."""
     tr = result.truth[tid]
     m = (tr.time >= bound.t0) & (tr.time <= bound.t1)
     t = tr.time[m]
@@ -205,15 +214,15 @@ def bench_seed003(
     rows: dict[tuple[str, str, str, int], Seed003Row] = {}
     for name in scenarios:
         base = load_scenario(name)
-        truth_theta = _truth_flights(base)
+        truth_theta = truth_flight_models(base, RocketConfig(gm=base.gm))
         for k in range(seeds):
             sc = dataclasses.replace(base, random_seed=base.random_seed + 1000 * k)
             result = simulate(sc, World(sc))
-            obs = _observations(result)
+            obs = observations_of(result)
             truth = truth_biases(sc)
             cfg = RocketConfig(gm=sc.gm)
             for variant, declared in _variants(sc):
-                models = {tid: (cfg.model(t0), th) for tid, (t0, th) in truth_theta.items()}
+                models = truth_theta
                 rocket_bound = bound_at(obs, models, declared)
                 bounds = {
                     'rocket': rocket_bound,
@@ -252,7 +261,7 @@ def bench_seed003(
                         r.failures += int(not ok)
                         if tid in sols:
                             bound = bounds.get(model, rocket_bound)[tid]
-                            _score(r, result, tid, sols[tid].states, bound)
+                            score_states(r, result, tid, sols[tid].states, bound)
                         if tid == min(truth_theta):
                             for b, v, s in bias_out:
                                 tb = truth.get((b.station, b.name), 0.0)
@@ -352,112 +361,3 @@ def _plot(
     fig.tight_layout()
     fig.savefig(folder / f'{name}_{variant}_{model}.png', dpi=90)
     plt.close(fig)
-
-
-@dataclass
-class FamilyDraw:
-    """One draw of the randomised seed-003 family with the rocket model."""
-
-    seed: int
-    satellites: int
-    biases: int
-    success: bool
-    pos_ratio: float
-    vel_ratio: float
-    nees: float
-    wall: float
-    message: str = ''
-
-
-def bench_seed003_family(
-    draws: int, progress: bool = True, log: Callable[[str], None] = print
-) -> list[FamilyDraw]:
-    """The rocket model on ``draws`` scenarios of :func:`~orbit_tracking.core.sim.
-    seed003_family.seed003_draw` (seeds 0 ... draws - 1), biases declared (``auto``) where
-    the draw has them; each against its own Cramér–Rao bound."""
-    out = []
-    for seed in range(draws):
-        sc = scenario_from_dict(seed003_draw(seed), f'seed003_family[{seed}]')
-        result = simulate(sc)
-        obs = _observations(result)
-        declared = declare_biases(sc) if truth_biases(sc) else ()
-        cfg = RocketConfig(gm=sc.gm)
-        start = time.perf_counter()
-        try:
-            fit = fit_model(obs, 'rocket', biases=declared, config=cfg)
-        except OrbitTrackingError as exc:
-            out.append(
-                FamilyDraw(
-                    seed,
-                    len(obs.stations),
-                    len(declared),
-                    False,
-                    math.nan,
-                    math.nan,
-                    math.nan,
-                    math.nan,
-                    str(exc),
-                )
-            )
-            continue
-        wall = time.perf_counter() - start
-        truth = {t: (cfg.model(t0), th) for t, (t0, th) in _truth_flights(sc).items()}
-        bound = bound_at(obs, truth, declared)[0]
-        row = Seed003Row(sc.name, '', 'rocket', 0)
-        _score(row, result, 0, fit.targets[0].states, bound)
-        out.append(
-            FamilyDraw(
-                seed,
-                len(obs.stations),
-                len(declared),
-                fit.success,
-                _rms(row.pos) / _rms(row.crb_pos),
-                _rms(row.vel) / _rms(row.crb_vel),
-                float(np.mean(row.nees)),
-                wall,
-                '' if fit.success else fit.message,
-            )
-        )
-        if progress and (seed + 1) % 10 == 0:
-            log(f'  seed003 family: {seed + 1}/{draws} draws')
-    return out
-
-
-def family_table(draws: Sequence[FamilyDraw]) -> str:
-    """Median / 95th percentile / worst of the family's ratios to each draw's bound, the
-    NEES, and the draws that were not a success."""
-    ok = [d for d in draws if d.success and math.isfinite(d.pos_ratio)]
-    lo, hi = (float(x) for x in stats.chi2.ppf([0.025, 0.975], 6))
-    in_band = sum(lo <= d.nees <= hi for d in ok)
-
-    def q(vals: list[float]) -> str:
-        if not vals:
-            return '— / — / —'
-        a = np.asarray(vals)
-        return f'{np.median(a):.2f} / {np.percentile(a, 95):.2f} / {a.max():.2f}'
-
-    lines = [
-        f'Randomised seed-003 family (`orbit_tracking/core/sim/seed003_family.py`, drawn '
-        f'apart from the reference scenarios): {len(draws)} draws, rocket model, biases '
-        f'declared where the draw has them ({sum(d.biases > 0 for d in draws)} draws). '
-        "Ratios are RMS error over the root mean trace of the draw's own Cramér–Rao bound "
-        "(median / 95th percentile / worst); the NEES is each draw's mean 6-dof state NEES "
-        f'every 2 s, "in band" when inside the chi-square(6) 95 % interval [{lo:.2f}, '
-        f'{hi:.2f}] (its samples along one flight are correlated, so this is the band of '
-        'one sample).\n',
-        '| draws | success | pos ratio | vel ratio | mean NEES (median / 95th / worst) | '
-        'NEES in band | wall [s] (median / worst) |',
-        '|---|---|---|---|---|---|---|',
-        f'| {len(draws)} | {len(ok)} | {q([d.pos_ratio for d in ok])} | '
-        f'{q([d.vel_ratio for d in ok])} | {q([d.nees for d in ok])} | '
-        f'{in_band}/{len(ok)} | '
-        + (
-            f'{np.median([d.wall for d in ok]):.2f} / {max(d.wall for d in ok):.2f} |'
-            if ok
-            else '— |'
-        ),
-    ]
-    for d in draws:
-        if not d.success:
-            lines.append(f'\nDraw {d.seed}: not a success ({d.message}).')
-    return '\n'.join(lines)

@@ -78,10 +78,9 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         from orbit_tracking.tools.bench.seed003 import (
             SEED003_SCENARIOS,
             bench_seed003,
-            bench_seed003_family,
-            family_table,
             seed003_tables,
         )
+        from orbit_tracking.tools.bench.seed003_family import bench_seed003_family, family_table
 
         t0 = time.monotonic()
         plots = Path(args.docs).parent / 'bench' if args.write_docs else args.plots
