@@ -55,6 +55,20 @@ def _fixes_start(obs: Observations) -> tuple[float, np.ndarray, np.ndarray]:
     return epoch, theta[:6], theta
 
 
+def _check_sensitivities(model: ThrustSplineModel, theta: np.ndarray, t: np.ndarray) -> None:
+    """The variational sensitivities at ``t`` against central differences of the flight."""
+    sens = model.propagate(theta, t).sensitivity
+    assert sens is not None
+    for k in range(theta.size):
+        h = 1.0 if k < 3 else 1e-3
+        e = np.zeros(theta.size)
+        e[k] = h
+        fd = (
+            model.propagate(theta + e, t, False).state - model.propagate(theta - e, t, False).state
+        ) / (2 * h)
+        assert np.abs(fd - sens[:, :, k]).max() <= 1e-6 * np.abs(sens[:, :, k]).max()
+
+
 @pytest.mark.parametrize('rotating', [False, True])
 @pytest.mark.parametrize('direction', ['velocity', 'free'])
 def test_the_sensitivities_are_the_finite_differences_of_the_flight(
@@ -72,16 +86,7 @@ def test_the_sensitivities_are_the_finite_differences_of_the_flight(
         coef = np.outer(coef, x0[3:] / np.linalg.norm(x0[3:])).ravel()
     theta = np.concatenate([x0, coef])
     t = np.linspace(50.0, 90.0, 17)
-    sens = model.propagate(theta, t).sensitivity
-    assert sens is not None
-    for k in range(theta.size):
-        h = 1.0 if k < 3 else 1e-3
-        e = np.zeros(theta.size)
-        e[k] = h
-        fd = (
-            model.propagate(theta + e, t, False).state - model.propagate(theta - e, t, False).state
-        ) / (2 * h)
-        assert np.abs(fd - sens[:, :, k]).max() <= 1e-6 * np.abs(sens[:, :, k]).max()
+    _check_sensitivities(model, theta, t)
 
 
 def test_a_jump_in_the_control_is_a_full_knot_and_its_pieces_are_the_spline() -> None:
@@ -110,16 +115,7 @@ def test_the_sensitivities_cross_a_jump() -> None:
     thrust = np.where(t < 71.3, 3700.0 / (200.0 - t), 2500.0 / (150.0 - (t - 71.3)))
     theta = np.concatenate([x0, model.control.fit(t, thrust)])
     t = np.linspace(60.0, 90.0, 7)
-    sens = model.propagate(theta, t).sensitivity
-    assert sens is not None
-    for k in range(theta.size):
-        h = 1.0 if k < 3 else 1e-3
-        e = np.zeros(theta.size)
-        e[k] = h
-        fd = (
-            model.propagate(theta + e, t, False).state - model.propagate(theta - e, t, False).state
-        ) / (2 * h)
-        assert np.abs(fd - sens[:, :, k]).max() <= 1e-6 * np.abs(sens[:, :, k]).max()
+    _check_sensitivities(model, theta, t)
 
 
 @pytest.mark.parametrize('direction', ['velocity', 'free'])

@@ -234,7 +234,8 @@ class EstimatorNode(StationInputs):
             'stages',
             1,
             "Burns of the rocket model (model 'rocket' or 'adjoint'): 1, 2 (a staging at an "
-            'unknown time) or 0 (auto: two when one does not fit).',
+            'unknown time) or 0 (auto: two when one does not fit, or when a staging explains what '
+            'one leaves).',
             read_only=True,
             min_value=0,
             max_value=2,

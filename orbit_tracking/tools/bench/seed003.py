@@ -222,15 +222,14 @@ def bench_seed003(
             truth = truth_biases(sc)
             cfg = RocketConfig(gm=sc.gm)
             for variant, declared in _variants(sc):
-                models = truth_theta
-                rocket_bound = bound_at(obs, models, declared)
+                rocket_bound = bound_at(obs, truth_theta, declared)
                 bounds = {
                     'rocket': rocket_bound,
                     'adjoint': adjoint_bound(
                         obs,
                         {
                             tid: (m.epoch, th[:6], partial(m.thrust, th))
-                            for tid, (m, th) in models.items()
+                            for tid, (m, th) in truth_theta.items()
                         },
                         declared,
                         AdjointConfig(gm=sc.gm),

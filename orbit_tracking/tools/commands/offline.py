@@ -219,7 +219,7 @@ def add_estimate(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         default='1',
         help='with --model rocket or adjoint: burns of the rocket model: one (default), two '
         '(a staging at an unknown time, searched on a 10 s grid), or auto (two when one does '
-        'not fit)',
+        'not fit, or when one leaves more than white noise and a staging explains it)',
     )
     s.add_argument(
         '--j2',
