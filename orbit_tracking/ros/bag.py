@@ -12,7 +12,7 @@ and what is wrong (the command line prints it and exits 2).
 from __future__ import annotations
 
 import importlib
-from collections.abc import Iterable, Iterator
+from collections.abc import Collection, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -284,15 +284,21 @@ def bag_topics(path: str | Path) -> dict[str, tuple[str, int]]:
 
 
 def _messages(
-    path: str | Path, topics: Iterable[str] | None, decode: bool
+    path: str | Path,
+    topics: Iterable[str] | None,
+    decode: bool,
+    raw_types: Collection[str] = (),
 ) -> Iterator[tuple[Any, int, Any]]:
     """``(connection, log time, message or raw bytes)`` of a bag, every failure a
-    :class:`BagError` (see :func:`read_bag`)."""
+    :class:`BagError` (see :func:`read_bag`); messages of the types ``raw_types`` stay
+    raw bytes."""
     wanted = None if topics is None else {t.lstrip('/') for t in topics}
     with _open_reader(path) as (folder, reader):
         conns = [c for c in reader.connections if wanted is None or c.topic.lstrip('/') in wanted]
         classes = {}
         for c in conns if decode else ():
+            if c.msgtype in raw_types:
+                continue
             try:
                 classes[c.msgtype] = message_class(c.msgtype)
             except (ImportError, AttributeError, ValueError) as exc:
@@ -309,7 +315,10 @@ def _messages(
                 if item is None:
                     break
                 conn, t_ns, raw = item
-                msg = deserialize_message(raw, classes[conn.msgtype]) if decode else raw
+                if decode and conn.msgtype not in raw_types:
+                    msg = deserialize_message(raw, classes[conn.msgtype])
+                else:
+                    msg = raw
             except MemoryError:
                 raise
             except Exception as exc:  # a corrupt storage file: one line, not a traceback
@@ -326,7 +335,9 @@ def _messages(
             )
 
 
-def read_bag(path: str | Path, topics: Iterable[str] | None = None) -> Iterator[BagMessage]:
+def read_bag(
+    path: str | Path, topics: Iterable[str] | None = None, raw_types: Collection[str] = ()
+) -> Iterator[BagMessage]:
     """Messages of a rosbag2 (MCAP or sqlite3) in log-time order, deserialised by rclpy.
 
     Parameters
@@ -335,6 +346,9 @@ def read_bag(path: str | Path, topics: Iterable[str] | None = None) -> Iterator[
         Bag folder (with ``metadata.yaml``), or its storage file (see :func:`bag_folder`).
     topics : iterable of str, optional
         Only these topics (names as recorded, leading ``/`` optional).
+    raw_types : collection of str, optional
+        Message types (``sensor_msgs/msg/PointCloud2``) left as their serialised bytes, for
+        a reader of its own (:func:`~orbit_tracking.ros.conversions.parse_cloud`).
 
     Raises
     ------
@@ -343,7 +357,7 @@ def read_bag(path: str | Path, topics: Iterable[str] | None = None) -> Iterator[
         through), a message type is unknown, or fewer messages could be read than the
         bag's index lists (a storage file cut or overwritten in the middle).
     """
-    for conn, t_ns, msg in _messages(path, topics, decode=True):
+    for conn, t_ns, msg in _messages(path, topics, decode=True, raw_types=raw_types):
         yield BagMessage(conn.topic, conn.msgtype, t_ns, msg)
 
 

@@ -26,11 +26,15 @@ from orbit_tracking.core.sim.scenario import load_scenario, truth_biases
 from orbit_tracking.core.triangulation.pipeline import TimedFix, TriangulationPipeline
 from orbit_tracking.ros.bag import BagError, bag_custom_data, bag_topics, read_bag
 from orbit_tracking.ros.conversions import (
+    MeasurementBatch,
     TimeBase,
+    WireCloud,
     cloud_to_measurements,
+    clouds_to_measurements,
     msg_to_fix,
     odometry_to_station_state,
     odometry_to_target_state,
+    parse_cloud,
     stamp_ns,
 )
 
@@ -213,8 +217,30 @@ class BagInput:
     data: Any
 
 
+def _cloud(raw: bytes, topic: str, bag: str | Path) -> WireCloud | Any:
+    """A measurement message from its bytes: read directly, or by rclpy when the direct
+    reader declines (not little-endian CDR, or malformed)."""
+    cloud = parse_cloud(raw)
+    if cloud is not None:
+        return cloud
+    from rclpy.serialization import deserialize_message
+    from sensor_msgs.msg import PointCloud2
+
+    try:
+        return deserialize_message(raw, PointCloud2)
+    except Exception as exc:  # a corrupt message: one line, not a traceback
+        raise BagError(
+            f'{bag}: a message on {topic} cannot be read: {exc} (truncated or corrupt file?)'
+        ) from exc
+
+
 def bag_inputs(
-    bag: str | Path, ctx: BagContext, counts: Counter[str], progress: bool, desc: str
+    bag: str | Path,
+    ctx: BagContext,
+    counts: Counter[str],
+    progress: bool,
+    desc: str,
+    defer_measurements: bool = False,
 ) -> Iterator[BagInput]:
     """Decode the input topics of a bag in log order, as the nodes receive them.
 
@@ -223,6 +249,10 @@ def bag_inputs(
     ``invalid_fix``) and skipped; ``rejected_points`` counts bad points inside good
     messages. The first station state sets ``ctx.world_frame``. Stations with
     measurements but no valid state go to ``ctx.stations_without_state``.
+
+    With ``defer_measurements`` the measurement messages are not given one by one in log
+    order but at the end, decoded together: one :class:`MeasurementBatch` per station and
+    field layout (for a reader that only collects them; the rows and counts are the same).
 
     Raises
     ------
@@ -234,29 +264,39 @@ def bag_inputs(
     measured: set[str] = set()
     with_state: set[str] = set()
     bad_state: Counter[str] = Counter()
+    deferred: dict[str, list[Any]] = {}
+
+    def accepted(b: MeasurementBatch, station: str) -> bool:
+        if b.rejected:
+            counts['rejected_points'] += b.rejected
+        if b.station_id != station:
+            counts['station_mismatch'] += b.messages
+            return False
+        measured.add(b.station_id)
+        return True
+
     bar = tqdm(total=sum(topics.values()), unit='msg', disable=not progress, desc=desc)
     try:
-        for m in read_bag(bag, topics):
+        for m in read_bag(bag, topics, raw_types=(INPUT_TYPES['measurements'],)):
             bar.update(1)
             topic = m.topic.lstrip('/')
             parts = topic.split('/')
-            tb = ctx.tb(stamp_ns(m.msg.header.stamp))
+            msg = _cloud(m.msg, m.topic, bag) if isinstance(m.msg, bytes) else m.msg
+            tb = ctx.tb(stamp_ns(msg.header.stamp))
             if len(parts) == 3 and parts[2] == 'measurements':
+                if defer_measurements:
+                    deferred.setdefault(parts[1], []).append(msg)
+                    continue
                 try:
-                    b = cloud_to_measurements(m.msg, tb)
+                    b = cloud_to_measurements(msg, tb)
                 except MeasurementError:
                     counts['invalid_messages'] += 1
                     continue
-                if b.rejected:
-                    counts['rejected_points'] += b.rejected
-                if b.station_id != parts[1]:
-                    counts['station_mismatch'] += 1
-                    continue
-                measured.add(b.station_id)
-                yield BagInput('measurements', b)
+                if accepted(b, parts[1]):
+                    yield BagInput('measurements', b)
             elif len(parts) == 3 and parts[2] == 'state':
                 try:
-                    st = odometry_to_station_state(m.msg, tb)
+                    st = odometry_to_station_state(msg, tb)
                 except ValueError:
                     counts['invalid_state'] += 1
                     bad_state[parts[1]] += 1
@@ -265,23 +305,31 @@ def bag_inputs(
                     counts['station_mismatch'] += 1
                     bad_state[parts[1]] += 1
                     continue
-                ctx.world_frame = ctx.world_frame or m.msg.header.frame_id
+                ctx.world_frame = ctx.world_frame or msg.header.frame_id
                 with_state.add(st.station_id)
                 yield BagInput('station_state', st)
             elif topic == 'telemetry/state':
                 try:
-                    tel = odometry_to_target_state(m.msg, tb, check=True)
+                    tel = odometry_to_target_state(msg, tb, check=True)
                 except ValueError:
                     counts['invalid_telemetry'] += 1
                     continue
                 yield BagInput('telemetry', tel)
             elif topic == 'triangulation/fixes':
                 try:
-                    yield BagInput('fix', msg_to_fix(m.msg, tb))
+                    yield BagInput('fix', msg_to_fix(msg, tb))
                 except ValueError:
                     counts['invalid_fix'] += 1
             elif topic == 'truth/state':
-                yield BagInput('truth', odometry_to_target_state(m.msg, tb))
+                yield BagInput('truth', odometry_to_target_state(msg, tb))
+        for station, clouds in deferred.items():
+            # the time base was set by the bag's first message
+            batches, errors = clouds_to_measurements(clouds, ctx.tb(0))
+            if errors:
+                counts['invalid_messages'] += len(errors)
+            for b in batches:
+                if accepted(b, station):
+                    yield BagInput('measurements', b)
         ctx.stations_without_state = {
             sid: _why_no_state(sid, topics, bad_state[sid])
             for sid in sorted(measured - with_state)
@@ -331,7 +379,7 @@ def read_for_estimation(
     buf = ObservationBuffer()
     counts: Counter[str] = Counter()
     truth: list[Any] = []
-    for item in bag_inputs(bag, ctx, counts, progress, 'read bag'):
+    for item in bag_inputs(bag, ctx, counts, progress, 'read bag', defer_measurements=True):
         d = item.data
         if item.kind == 'measurements':
             buf.add_measurements(d.station_id, d.fields, d.time, d.target_id, d.values, d.sigmas)

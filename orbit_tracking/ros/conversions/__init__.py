@@ -22,7 +22,10 @@ Submodules (every public name is re-exported here; import from this package):
 
 * :mod:`~orbit_tracking.ros.conversions.time`: :class:`TimeBase`, :func:`stamp_ns`;
 * :mod:`~orbit_tracking.ros.conversions.measurements`: :class:`MeasurementBatch`,
-  :func:`measurements_to_cloud`, :func:`cloud_to_measurements`;
+  :func:`measurements_to_cloud`, :func:`cloud_to_measurements`,
+  :func:`clouds_to_measurements` (many messages in one pass);
+* :mod:`~orbit_tracking.ros.conversions.cloud_wire`: :func:`parse_cloud` (a
+  ``PointCloud2`` read from its serialised bytes, without rclpy), :class:`WireCloud`;
 * :mod:`~orbit_tracking.ros.conversions.states`: :class:`StationStateSample`,
   :class:`TargetStateSample`, station and target states <-> ``Odometry``, target frame
   ids, fixes <-> ``PoseWithCovarianceStamped``;
@@ -35,6 +38,7 @@ Submodules (every public name is re-exported here; import from this package):
 
 from __future__ import annotations
 
+from orbit_tracking.ros.conversions.cloud_wire import WireCloud, parse_cloud
 from orbit_tracking.ros.conversions.diagnostics import (
     biases_to_diagnostics,
     diagnostic_array,
@@ -44,6 +48,7 @@ from orbit_tracking.ros.conversions.diagnostics import (
 from orbit_tracking.ros.conversions.measurements import (
     MeasurementBatch,
     cloud_to_measurements,
+    clouds_to_measurements,
     measurements_to_cloud,
 )
 from orbit_tracking.ros.conversions.states import (
@@ -79,10 +84,12 @@ __all__ = [
     'WINDOW_STATE_FIELDS',
     'WindowResiduals',
     'WindowStates',
+    'WireCloud',
     'biases_to_diagnostics',
     'checked_stamp_ns',
     'cloud_to_measurements',
     'cloud_to_window_states',
+    'clouds_to_measurements',
     'diagnostic_array',
     'diagnostic_status',
     'diagnostics_to_biases',
@@ -92,6 +99,7 @@ __all__ = [
     'msg_to_window_residuals',
     'odometry_to_station_state',
     'odometry_to_target_state',
+    'parse_cloud',
     'stamp_ns',
     'station_state_to_odometry',
     'target_frame_id',

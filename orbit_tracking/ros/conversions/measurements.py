@@ -31,9 +31,16 @@ from orbit_tracking.ros.conversions._common import (
     _layout_problem,
     _pack_cloud,
 )
+from orbit_tracking.ros.conversions.cloud_wire import WireCloud
 from orbit_tracking.ros.conversions.time import TimeBase, checked_stamp_ns
 
-__all__ = ['MeasurementBatch', 'cloud_to_measurements', 'measurements_to_cloud']
+__all__ = [
+    'MeasurementBatch',
+    'checked_stamp_ns_of',
+    'cloud_to_measurements',
+    'clouds_to_measurements',
+    'measurements_to_cloud',
+]
 
 
 @dataclass(frozen=True)
@@ -58,6 +65,9 @@ class MeasurementBatch:
         counted here.
     reasons : Counter
         Dropped points per reason (the empty ones as ``no_value``).
+    messages : int
+        Messages decoded into this batch (more than one from
+        :func:`clouds_to_measurements`).
     """
 
     station_id: str
@@ -68,6 +78,7 @@ class MeasurementBatch:
     sigmas: FloatArray
     rejected: int
     reasons: Counter[str] = field(default_factory=Counter)
+    messages: int = 1
 
 
 def _cloud_dtype(fields: Sequence[str], with_time_offset: bool) -> np.dtype:
@@ -129,6 +140,10 @@ def measurements_to_cloud(
     return _pack_cloud(arr, int(ns[0]), station_id)
 
 
+_Group = tuple[str, tuple[str, ...], np.dtype, list[bytes], list[float], list[int]]
+"""Messages of one station and layout: station, fields, dtype, point bytes, stamps, widths."""
+
+
 def cloud_to_measurements(msg: PointCloud2, timebase: TimeBase) -> MeasurementBatch:
     """Decode and validate one measurement message.
 
@@ -145,11 +160,91 @@ def cloud_to_measurements(msg: PointCloud2, timebase: TimeBase) -> MeasurementBa
         :data:`~orbit_tracking.core.models.limits.MAX_TARGET_ID`), ``sigma_invalid``,
         ``no_value``).
     """
-    station = msg.header.frame_id
+    checked_stamp_ns_of(msg)
+    station, fields, dtype = _checked_layout(msg)
+    arr = np.frombuffer(bytes(msg.data), dtype=dtype, count=int(msg.width))
+    t0 = np.full(arr.shape[0], timebase.to_seconds(msg.header.stamp))
+    return _points(station, fields, arr, t0)
+
+
+def clouds_to_measurements(
+    clouds: Sequence[PointCloud2 | WireCloud], timebase: TimeBase
+) -> tuple[list[MeasurementBatch], list[MeasurementError]]:
+    """Decode many measurement messages at once: the same checks, rows and counts as
+    :func:`cloud_to_measurements` message by message, but the points of all messages of one
+    station and layout decoded and checked in one pass.
+
+    Returns
+    -------
+    batches : list of MeasurementBatch
+        One per (station, field layout), in order of first appearance; the rows of each in
+        message order. A message's points keep its own stamp. ``rejected`` and ``reasons``
+        add up those of its messages.
+    errors : list of MeasurementError
+        One per message that is unusable as a whole (what :func:`cloud_to_measurements`
+        raises for it), in message order.
+    """
+    layouts: dict[tuple[object, ...], tuple[str, tuple[str, ...], np.dtype] | MeasurementError]
+    layouts = {}
+    groups: dict[tuple[object, ...], _Group] = {}
+    errors: list[MeasurementError] = []
+    for msg in clouds:
+        try:
+            checked_stamp_ns_of(msg)
+        except MeasurementError as exc:
+            errors.append(exc)
+            continue
+        data = bytes(msg.data)
+        key = (
+            msg.header.frame_id,
+            tuple((f.name, int(f.offset), int(f.datatype), int(f.count)) for f in msg.fields),
+            bool(msg.is_bigendian),
+            int(msg.point_step),
+            int(msg.height),
+            int(msg.width),
+            int(msg.row_step),
+            len(data),
+        )
+        layout = layouts.get(key)
+        if layout is None:
+            try:
+                layout = _checked_layout(msg)
+            except MeasurementError as exc:
+                layout = exc
+            layouts[key] = layout
+        if isinstance(layout, MeasurementError):
+            errors.append(layout)
+            continue
+        group = groups.setdefault(key[:5], (*layout, [], [], []))
+        group[3].append(data)
+        group[4].append(timebase.to_seconds(msg.header.stamp))
+        group[5].append(int(msg.width))
+    batches = []
+    for station, fields, dtype, datas, t0s, widths in groups.values():
+        arr = np.frombuffer(b''.join(datas), dtype=dtype, count=sum(widths))
+        t0 = np.repeat(np.array(t0s), widths)
+        batches.append(_points(station, fields, arr, t0, messages=len(datas)))
+    return batches, errors
+
+
+def checked_stamp_ns_of(msg: PointCloud2 | WireCloud) -> int:
+    """The stamp of a measurement message in integer nanoseconds.
+
+    Raises
+    ------
+    MeasurementError
+        With reason ``stamp``: not a valid stamp.
+    """
     try:
-        checked_stamp_ns(msg.header.stamp)
+        return checked_stamp_ns(msg.header.stamp)
     except ValueError as exc:
-        raise MeasurementError(f'station {station!r}: {exc}', 'stamp') from None
+        raise MeasurementError(f'station {msg.header.frame_id!r}: {exc}', 'stamp') from None
+
+
+def _checked_layout(msg: PointCloud2 | WireCloud) -> tuple[str, tuple[str, ...], np.dtype]:
+    """Station id, value fields and the structured dtype of a message's points, after the
+    message-level checks (see :func:`cloud_to_measurements`)."""
+    station = msg.header.frame_id
     if not station:
         raise MeasurementError(
             'measurement message has an empty header.frame_id (station id)', 'frame_id'
@@ -197,7 +292,16 @@ def cloud_to_measurements(msg: PointCloud2, timebase: TimeBase) -> MeasurementBa
     dtype = np.dtype(
         {'names': names, 'formats': formats, 'offsets': offsets, 'itemsize': msg.point_step}
     )
-    arr = np.frombuffer(bytes(msg.data), dtype=dtype, count=n)
+    return station, fields, dtype
+
+
+def _points(
+    station: str, fields: tuple[str, ...], arr: np.ndarray, t0: FloatArray, messages: int = 1
+) -> MeasurementBatch:
+    """The point-level checks and rows of decoded points ``arr`` whose messages were
+    stamped ``t0`` (per point, TimeBase seconds)."""
+    n = arr.shape[0]
+    names = arr.dtype.names or ()
     values = np.stack([arr[f].astype(np.float64) for f in fields], axis=1)
     sigmas = np.stack([arr[sigma_field(f)].astype(np.float64) for f in fields], axis=1)
     offs = arr['time_offset'].astype(np.float64) if 'time_offset' in names else np.zeros(n)
@@ -218,14 +322,14 @@ def cloud_to_measurements(msg: PointCloud2, timebase: TimeBase) -> MeasurementBa
     if np.any(empty):
         reasons['no_value'] = int(empty.sum())
     keep = ~bad & ~empty
-    t0 = timebase.to_seconds(msg.header.stamp)
     return MeasurementBatch(
         station_id=station,
         fields=fields,
-        time=t0 + offs[keep],
+        time=t0[keep] + offs[keep],
         target_id=tids[keep],
         values=values[keep],
         sigmas=sigmas[keep],
         rejected=int(np.count_nonzero(bad)),
         reasons=reasons,
+        messages=messages,
     )

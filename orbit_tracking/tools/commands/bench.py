@@ -124,6 +124,21 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         if args.write_docs:
             write_docs(args.docs, 'dds', text)
             print(f'updated {args.docs}')
+    if args.suite == 'speed':  # wall time against the KF+RTS baseline; not part of 'all'
+        from orbit_tracking.tools.bench.speed import SPEED_SCENARIO, bench_speed, speed_table
+
+        t0 = time.monotonic()
+        scenario = args.scenarios[0] if args.scenarios else SPEED_SCENARIO
+        text = speed_table(bench_speed(scenario, args.repeats, not args.quiet)) + (
+            f'\n\nMeasured by `orbit-tracking bench --suite speed --repeats {args.repeats}` on '
+            f'{platform.machine()} ({platform.python_implementation()} '
+            f'{platform.python_version()}, {os.cpu_count()} cores) in '
+            f'{time.monotonic() - t0:.0f} s.'
+        )
+        print(text)
+        if args.write_docs:
+            write_docs(args.docs, 'speed', text)
+            print(f'updated {args.docs}')
     if args.suite == 'robustness':  # randomised draws against their own CRB; not part of 'all'
         from orbit_tracking.tools.bench.robustness import robustness_tables, run_robustness
 
@@ -237,10 +252,17 @@ def add_bench(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
             'dds',
             'faults',
             'robustness',
+            'speed',
         ),
         default='all',
-        help='which benchmark to run (default: all; dds, the live nodes over DDS, and faults, '
-        'bad messages thrown at them, only when asked)',
+        help='which benchmark to run (default: all; dds, the live nodes over DDS, faults, '
+        'bad messages thrown at them, robustness and speed only when asked)',
+    )
+    s.add_argument(
+        '--repeats',
+        type=int,
+        default=3,
+        help='speed: timed runs of estimate (the median is reported)',
     )
     s.add_argument(
         '--rates',
