@@ -12,6 +12,7 @@ and what is wrong (the command line prints it and exits 2).
 from __future__ import annotations
 
 import importlib
+import os
 from collections.abc import Collection, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -272,14 +273,38 @@ def _open_reader(path: str | Path) -> Iterator[tuple[Path, Reader]]:
         reader.close()
 
 
+_TOPICS_SEEN: dict[tuple[object, ...], dict[str, tuple[str, int]]] = {}
+"""Topics of bags already opened, by folder and the size and time of change of its files:
+a command asks for them two or three times (checking its input, then reading it), and each
+opening parses the metadata anew (a few tenths of a second)."""
+
+
+def _files_key(folder: Path) -> tuple[object, ...]:
+    try:
+        files = sorted(
+            (e.name, e.stat().st_size, e.stat().st_mtime_ns) for e in os.scandir(folder)
+        )
+    except OSError:
+        return ()
+    return (str(folder.resolve()), *files)
+
+
 def bag_topics(path: str | Path) -> dict[str, tuple[str, int]]:
     """Topics of a bag (names as recorded) with their message type and count; opening
-    the bag checks its metadata and storage files."""
+    the bag checks its metadata and storage files (a bag whose files have not changed since
+    it was opened is not opened again)."""
+    key = _files_key(bag_folder(path))
+    if key and key in _TOPICS_SEEN:
+        return dict(_TOPICS_SEEN[key])
     out: dict[str, tuple[str, int]] = {}
     with _open_reader(path) as (_folder, reader):
         for c in reader.connections:
             _, n = out.get(c.topic, (c.msgtype, 0))
             out[c.topic] = (c.msgtype, n + int(c.msgcount))
+    if key:
+        if len(_TOPICS_SEEN) >= 64:
+            _TOPICS_SEEN.clear()
+        _TOPICS_SEEN[key] = dict(out)
     return out
 
 

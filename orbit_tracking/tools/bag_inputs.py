@@ -28,13 +28,13 @@ from orbit_tracking.ros.bag import BagError, bag_custom_data, bag_topics, read_b
 from orbit_tracking.ros.conversions import (
     MeasurementBatch,
     TimeBase,
-    WireCloud,
     cloud_to_measurements,
     clouds_to_measurements,
     msg_to_fix,
     odometry_to_station_state,
     odometry_to_target_state,
     parse_cloud,
+    parse_odometry,
     stamp_ns,
 )
 
@@ -217,17 +217,25 @@ class BagInput:
     data: Any
 
 
-def _cloud(raw: bytes, topic: str, bag: str | Path) -> WireCloud | Any:
-    """A measurement message from its bytes: read directly, or by rclpy when the direct
-    reader declines (not little-endian CDR, or malformed)."""
-    cloud = parse_cloud(raw)
-    if cloud is not None:
-        return cloud
+_WIRE_READERS = {
+    'sensor_msgs/msg/PointCloud2': parse_cloud,
+    'nav_msgs/msg/Odometry': parse_odometry,
+}
+"""Message types read straight from their bytes (:mod:`orbit_tracking.ros.conversions.wire`)."""
+
+
+def _from_wire(raw: bytes, msgtype: str, topic: str, bag: str | Path) -> Any:
+    """A message from its bytes: read directly, or by rclpy when the direct reader declines
+    (not little-endian CDR, or malformed)."""
+    msg = _WIRE_READERS[msgtype](raw)
+    if msg is not None:
+        return msg
     from rclpy.serialization import deserialize_message
-    from sensor_msgs.msg import PointCloud2
+
+    from orbit_tracking.ros.bag import message_class
 
     try:
-        return deserialize_message(raw, PointCloud2)
+        return deserialize_message(raw, message_class(msgtype))
     except Exception as exc:  # a corrupt message: one line, not a traceback
         raise BagError(
             f'{bag}: a message on {topic} cannot be read: {exc} (truncated or corrupt file?)'
@@ -277,11 +285,11 @@ def bag_inputs(
 
     bar = tqdm(total=sum(topics.values()), unit='msg', disable=not progress, desc=desc)
     try:
-        for m in read_bag(bag, topics, raw_types=(INPUT_TYPES['measurements'],)):
+        for m in read_bag(bag, topics, raw_types=_WIRE_READERS):
             bar.update(1)
             topic = m.topic.lstrip('/')
             parts = topic.split('/')
-            msg = _cloud(m.msg, m.topic, bag) if isinstance(m.msg, bytes) else m.msg
+            msg = _from_wire(m.msg, m.msgtype, m.topic, bag) if isinstance(m.msg, bytes) else m.msg
             tb = ctx.tb(stamp_ns(msg.header.stamp))
             if len(parts) == 3 and parts[2] == 'measurements':
                 if defer_measurements:

@@ -24,8 +24,9 @@ Submodules (every public name is re-exported here; import from this package):
 * :mod:`~orbit_tracking.ros.conversions.measurements`: :class:`MeasurementBatch`,
   :func:`measurements_to_cloud`, :func:`cloud_to_measurements`,
   :func:`clouds_to_measurements` (many messages in one pass);
-* :mod:`~orbit_tracking.ros.conversions.cloud_wire`: :func:`parse_cloud` (a
-  ``PointCloud2`` read from its serialised bytes, without rclpy), :class:`WireCloud`;
+* :mod:`~orbit_tracking.ros.conversions.wire`: :func:`parse_cloud`, :func:`parse_odometry`
+  (a ``PointCloud2`` or ``Odometry`` read from its serialised bytes, without rclpy),
+  :class:`WireCloud`, :class:`WireOdometry`;
 * :mod:`~orbit_tracking.ros.conversions.states`: :class:`StationStateSample`,
   :class:`TargetStateSample`, station and target states <-> ``Odometry``, target frame
   ids, fixes <-> ``PoseWithCovarianceStamped``;
@@ -38,7 +39,6 @@ Submodules (every public name is re-exported here; import from this package):
 
 from __future__ import annotations
 
-from orbit_tracking.ros.conversions.cloud_wire import WireCloud, parse_cloud
 from orbit_tracking.ros.conversions.diagnostics import (
     biases_to_diagnostics,
     diagnostic_array,
@@ -74,6 +74,12 @@ from orbit_tracking.ros.conversions.windows import (
     window_residuals_to_msg,
     window_states_to_cloud,
 )
+from orbit_tracking.ros.conversions.wire import (
+    WireCloud,
+    WireOdometry,
+    parse_cloud,
+    parse_odometry,
+)
 
 __all__ = [
     'MAX_WINDOW_POINTS',
@@ -85,6 +91,7 @@ __all__ = [
     'WindowResiduals',
     'WindowStates',
     'WireCloud',
+    'WireOdometry',
     'biases_to_diagnostics',
     'checked_stamp_ns',
     'cloud_to_measurements',
@@ -100,6 +107,7 @@ __all__ = [
     'odometry_to_station_state',
     'odometry_to_target_state',
     'parse_cloud',
+    'parse_odometry',
     'stamp_ns',
     'station_state_to_odometry',
     'target_frame_id',

@@ -31,8 +31,8 @@ from orbit_tracking.ros.conversions._common import (
     _layout_problem,
     _pack_cloud,
 )
-from orbit_tracking.ros.conversions.cloud_wire import WireCloud
 from orbit_tracking.ros.conversions.time import TimeBase, checked_stamp_ns
+from orbit_tracking.ros.conversions.wire import WireCloud
 
 __all__ = [
     'MeasurementBatch',
@@ -197,7 +197,9 @@ def clouds_to_measurements(
         data = bytes(msg.data)
         key = (
             msg.header.frame_id,
-            tuple((f.name, int(f.offset), int(f.datatype), int(f.count)) for f in msg.fields),
+            msg.fields
+            if isinstance(msg, WireCloud)
+            else tuple((f.name, f.offset, f.datatype, f.count) for f in msg.fields),
             bool(msg.is_bigendian),
             int(msg.point_step),
             int(msg.height),

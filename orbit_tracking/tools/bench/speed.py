@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-__all__ = ['SPEED_SCENARIO', 'SpeedResult', 'bench_speed', 'speed_table']
+__all__ = ['SPEED_SCENARIO', 'SpeedResult', 'bench_speed', 'profile_lines', 'speed_table']
 
 SPEED_SCENARIO = 'seed000_s1'
 
@@ -73,10 +73,10 @@ def _run_estimate(bag: Path, out: Path) -> float:
     return wall
 
 
-def _profile(bag: Path, out: Path, top: int) -> str:
-    prof = out.parent / 'estimate.prof'
-    cmd = _estimate_cmd(bag, out)
-    cmd[1:1] = ['-m', 'cProfile', '-o', str(prof)]
+def profile_lines(cmd: list[str], prof: Path, top: int) -> str:
+    """Run the Python command ``cmd`` (``[python, ...]``) under cProfile, writing ``prof``;
+    its ``top`` functions of ours and of the libraries we drive, by cumulative time."""
+    cmd = [cmd[0], '-m', 'cProfile', '-o', str(prof), *cmd[1:]]
     subprocess.run(cmd, capture_output=True, check=True)
     stats = pstats.Stats(str(prof))
     rows = []
@@ -171,7 +171,7 @@ def bench_speed(
         say('speed: Kalman filter + RTS smoother, tuned on truth ...')
         _kalman(bag, summary, res)
         say('speed: profile ...')
-        res.profile = _profile(bag, root / 'prof_est', 25)
+        res.profile = profile_lines(_estimate_cmd(bag, root / 'prof_est'), root / 'prof', 25)
     return res
 
 

@@ -1,17 +1,19 @@
-"""Measurement messages read from their bytes (``parse_cloud``) and many at once
+"""Measurement and state messages read from their bytes (``parse_cloud``) and many at once
 (``clouds_to_measurements``), against rclpy's deserialisation and the one-message decoder.
 
 The message set: every sensor kind, one epoch and batches, foreign and big-endian point
 layouts, and the damaged and hostile messages of the contract's checks (bad stamps, empty
 station, wrong datatypes, a value without its sigma, rows of padding, short data, no points,
-implausible points).
+implausible points); station and target states, and a broken one.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from nav_msgs.msg import Odometry
 from rclpy.serialization import deserialize_message, serialize_message
+from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import PointCloud2, PointField
 from test_conversions import KIND_FIELDS, TB, _hand_built_cloud, _rows
 
@@ -20,7 +22,12 @@ from orbit_tracking.ros.conversions import (
     cloud_to_measurements,
     clouds_to_measurements,
     measurements_to_cloud,
+    odometry_to_station_state,
+    odometry_to_target_state,
     parse_cloud,
+    parse_odometry,
+    station_state_to_odometry,
+    target_state_to_odometry,
 )
 
 
@@ -154,3 +161,64 @@ def test_many_messages_at_once_give_the_rows_and_counts_of_one_at_a_time(wire: b
     # one batch per station and point layout (one epoch, or a batch with time_offset)
     assert len(batches) == 11
     assert all(np.all(np.diff(b.time) >= 0) for b in batches if b.station_id != 'st05')
+
+
+def _odometries() -> list[Odometry]:
+    rng = np.random.default_rng(5)
+    out = []
+    for k, (station, world) in enumerate([('cw01', 'earth'), ('sat06', 'eci'), ('x', 'w')]):
+        rot = Rotation.from_euler('zyx', rng.uniform(-3, 3, 3)).as_matrix()
+        p, v, w = rng.normal(0, 5e6, 3), rng.normal(0, 300, 3), rng.normal(0, 0.01, 3)
+        out.append(station_state_to_odometry(station, world, 3.0 + k, p, v, rot, w, TB))
+    for tid in (0, 7, 2**31 - 1):
+        pc, vc = np.diag(rng.uniform(1, 9, 3)), np.diag(rng.uniform(0.1, 1, 3))
+        p, v = rng.normal(0, 5e6, 3), rng.normal(0, 300, 3)
+        out.append(target_state_to_odometry(tid, 'earth', 9.5, p, v, pc, vc, TB))
+    bad = Odometry()  # an empty station id, a zero quaternion, NaN
+    bad.pose.pose.position.x = float('nan')
+    out.append(bad)
+    return out
+
+
+@pytest.mark.parametrize('i', range(7))
+def test_parse_odometry_decodes_as_rclpy_does(i: int) -> None:
+    raw = serialize_message(_odometries()[i])
+    want = deserialize_message(raw, Odometry)
+    got = parse_odometry(raw)
+    assert got is not None
+    assert (got.header.stamp.sec, got.header.stamp.nanosec, got.header.frame_id) == (
+        want.header.stamp.sec,
+        want.header.stamp.nanosec,
+        want.header.frame_id,
+    )
+    assert got.child_frame_id == want.child_frame_id
+    for path in (
+        'pose.pose.position',
+        'pose.pose.orientation',
+        'twist.twist.linear',
+        'twist.twist.angular',
+    ):
+        a, b = got, want
+        for part in path.split('.'):
+            a, b = getattr(a, part), getattr(b, part)
+        names = ('x', 'y', 'z', 'w') if path.endswith('orientation') else ('x', 'y', 'z')
+        assert repr([getattr(a, n) for n in names]) == repr([getattr(b, n) for n in names])
+    np.testing.assert_array_equal(got.pose.covariance, want.pose.covariance)
+    np.testing.assert_array_equal(got.twist.covariance, want.twist.covariance)
+    # and the decoders give the same samples, or the same refusal
+    for decode in (odometry_to_station_state, odometry_to_target_state):
+        try:
+            expected = repr(decode(want, TB))
+        except ValueError as exc:
+            expected = f'ValueError: {exc}'
+        try:
+            actual = repr(decode(got, TB))
+        except ValueError as exc:
+            actual = f'ValueError: {exc}'
+        assert actual == expected
+
+
+def test_parse_odometry_declines_cut_or_foreign_bytes() -> None:
+    raw = bytes(serialize_message(_odometries()[0]))
+    assert all(parse_odometry(raw[:cut]) is None for cut in range(len(raw) - 4))
+    assert parse_odometry(b'\x00\x00' + raw[2:]) is None
