@@ -7,7 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.stats import chi2
+
+from orbit_tracking.core.chi2 import chi2_ppf
 
 __all__ = ['NeesSummary', 'hermite_states', 'nees', 'nees_summary']
 
@@ -59,8 +60,8 @@ def nees_summary(values: ArrayLike, dof: int = 3, probability: float = 0.95) -> 
         float(v.mean()),
         n,
         dof,
-        float(chi2.ppf(a, n * dof) / n),
-        float(chi2.ppf(1.0 - a, n * dof) / n),
+        float(chi2_ppf(a, n * dof)) / n,
+        float(chi2_ppf(1.0 - a, n * dof)) / n,
         probability,
     )
 

@@ -29,8 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.stats import chi2
 
+from orbit_tracking.core.chi2 import chi2_isf_each
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.estimation.config import EstimationError
 from orbit_tracking.core.models.measurements import StationPose, predict, residual
@@ -283,7 +283,9 @@ def smooth(
     for st in stations:
         for j, k in enumerate(st.node):
             first[k].append((st, j))
-    gate = chi2.isf(cfg.gate_probability, np.arange(1, 64)) if cfg.gate_probability > 0 else None
+    gate = (
+        chi2_isf_each(cfg.gate_probability, np.arange(1, 64)) if cfg.gate_probability > 0 else None
+    )
     x0 = _start(obs, target_id, float(times[0]))
     p0 = np.diag(np.repeat(np.square(cfg.init_sigma), 3))
     nominal: FloatArray | None = None

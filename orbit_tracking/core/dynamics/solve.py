@@ -11,9 +11,9 @@ from typing import Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import stats
 
 from orbit_tracking.core import frames
+from orbit_tracking.core.chi2 import chi2_ppf
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.dynamics.adjoint import (
     AdjointConfig,
@@ -55,7 +55,7 @@ STAGING_SCOUT_ITERATIONS = 6
 SCOUT_ITERATIONS = 12
 """Levenberg-Marquardt steps each start of a search gets before the best goes on."""
 
-STAGING_EVIDENCE = float(stats.chi2.ppf(0.999, 3))
+STAGING_EVIDENCE = float(chi2_ppf(0.999, 3))
 """Cost decrease (chi-square, three more parameters, 0.1 % false alarm) that makes the
 automatic choice prefer two stages to one consistent burn."""
 

@@ -14,6 +14,7 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
+from orbit_tracking.core.chi2 import chi2_isf
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.estimation.bspline import SplineAxis, SplineTrajectory
 from orbit_tracking.core.estimation.config import EstimatorConfig, Segment
@@ -195,8 +196,6 @@ def _events(
 ) -> dict[int, list[tuple[float, float, float]]]:
     """Events the failing knot intervals ask for: per target, ``(tau, lo, hi)`` with
     [lo, hi] the run of failing intervals it replaces (see :func:`refine_knots`)."""
-    from scipy.stats import chi2
-
     tgt, tim, hp, hv = rows
     q = cfg.knots.min_spacing  # the instants tried lie on this grid (edge-stable)
     tests: list[
@@ -270,7 +269,7 @@ def _events(
         # significant, and a better explanation than the midpoint knots (a smaller p-value:
         # more misfit explained per degree of freedom)
         better = alt is None or significance(s, dof) > significance(*alt)
-        if s > chi2.isf(cfg.refine_alpha / n_tried, dof) and better:
+        if s > chi2_isf(cfg.refine_alpha / n_tried, dof) and better:
             found.setdefault(tid, []).append((tau, lo, hi))
     return found
 
@@ -308,8 +307,6 @@ def refine_knots(
     Returns the refined trajectory axes and telemetry error axes, per target (only those
     that changed).
     """
-    from scipy.stats import chi2
-
     tgt = np.concatenate([np.full(row[1].size, row[0]) for row in prob.rows])
     tim = np.concatenate([row[1] for row in prob.rows])
     hp = np.concatenate([row[2] for row in prob.rows])
@@ -339,7 +336,7 @@ def refine_knots(
     n_cand = len(traj_c) + len(tel_c)
     if n_cand == 0:
         return {}, {}
-    limit = float(chi2.isf(cfg.refine_alpha / n_cand, 1))
+    limit = float(chi2_isf(cfg.refine_alpha / n_cand, 1))
     events: dict[int, list[tuple[float, float, float]]] = {}
     if cfg.refine_events:
         events = _events(prob, traj_c, limit, (tgt, tim, hp, hv), r, jac, cov, cfg, avoid or {})

@@ -34,6 +34,7 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
+from orbit_tracking.core.chi2 import chi2_ppf_each
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.errors import OrbitTrackingError
 from orbit_tracking.core.estimation.bspline import SplineAxis, SplineTrajectory
@@ -506,8 +507,6 @@ def _bad_intervals(
     quantile at ``1 - 0.01 / N`` (``N`` intervals tested), so noise alone rarely makes an
     interval bad (ratio above 1). ``noise`` (position, velocity) replaces the rough
     trajectory's own levels."""
-    from scipy.stats import chi2
-
     sp_, sv_ = noise if noise is not None else (rough.position_noise, rough.velocity_noise)
     brk = np.unique(ax.knots)
     idx = np.clip(np.searchsorted(brk, rough.time, side='right') - 1, 0, brk.size - 2)
@@ -520,7 +519,7 @@ def _bad_intervals(
     for e, noise_level, sigma in checks:
         mse = np.bincount(idx, weights=e**2, minlength=n_int) / np.maximum(cnt, 1.0)
         n = np.maximum(cnt, 1.0)
-        limit = sigma**2 + noise_level**2 * chi2.ppf(1.0 - 0.01 / n_int, n) / n
+        limit = sigma**2 + noise_level**2 * chi2_ppf_each(1.0 - 0.01 / n_int, n) / n
         ratio = np.maximum(ratio, np.where(cnt > 0, mse / limit, 0.0))
     return ratio
 

@@ -19,8 +19,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.stats import chi2
 
+from orbit_tracking.core.chi2 import chi2_isf
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.estimation.config import EstimatorConfig
 from orbit_tracking.core.estimation.telemetry_velocity import (
@@ -66,6 +66,6 @@ def delay_test(
             continue
         stat, dof = score
         out.append(
-            DelayTest(tb.target, stat, float(chi2.isf(cfg.telemetry_velocity_alpha, dof)), dof)
+            DelayTest(tb.target, stat, float(chi2_isf(cfg.telemetry_velocity_alpha, dof)), dof)
         )
     return out

@@ -24,8 +24,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.stats import chi2
 
+from orbit_tracking.core.chi2 import chi2_isf
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.estimation.config import EstimatorConfig
 from orbit_tracking.core.estimation.scaling import scaled_solve
@@ -99,7 +99,7 @@ def velocity_error_test(
         stat, dof = score
         out.append(
             VelocityErrorTest(
-                tb.target, stat, float(chi2.isf(cfg.telemetry_velocity_alpha, dof)), dof
+                tb.target, stat, float(chi2_isf(cfg.telemetry_velocity_alpha, dof)), dof
             )
         )
     return out

@@ -30,8 +30,8 @@ from itertools import combinations
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.stats import chi2 as chi2_dist
 
+from orbit_tracking.core.chi2 import chi2_ppf
 from orbit_tracking.core.errors import GeometryError
 
 __all__ = [
@@ -327,7 +327,7 @@ def _pairwise(lines: Sequence[LineOfSight]) -> tuple[float, float]:
 
 @lru_cache(maxsize=256)
 def _chi2_limit(probability: float, dof: int) -> float:
-    return float(chi2_dist.ppf(probability, dof))
+    return chi2_ppf(probability, dof)
 
 
 def _information(
