@@ -21,6 +21,7 @@ from orbit_tracking.core.errors import MeasurementError
 from orbit_tracking.ros.conversions import (
     cloud_to_measurements,
     clouds_to_measurements,
+    measurements_to_cdr,
     measurements_to_cloud,
     odometry_to_station_state,
     odometry_to_target_state,
@@ -222,3 +223,22 @@ def test_parse_odometry_declines_cut_or_foreign_bytes() -> None:
     raw = bytes(serialize_message(_odometries()[0]))
     assert all(parse_odometry(raw[:cut]) is None for cut in range(len(raw) - 4))
     assert parse_odometry(b'\x00\x00' + raw[2:]) is None
+
+
+@pytest.mark.parametrize('station', ['st01', 'a', 'abc', 'radar_long_name_7'])
+@pytest.mark.parametrize('kind', sorted(KIND_FIELDS))
+@pytest.mark.parametrize('epochs', [1, 4])
+def test_measurements_to_cdr_serialises_the_message_of_measurements_to_cloud(
+    station, kind, epochs
+) -> None:
+    fields = KIND_FIELDS[kind]
+    t, tid, values, sigmas = _rows(fields, [7.25 + 0.05 * k for k in range(epochs)], seed=3)
+    msg = measurements_to_cloud(station, fields, t, tid, values, sigmas, TB)
+    want = bytes(serialize_message(msg))
+    for _ in range(2):  # the second time from the kept layout
+        raw = measurements_to_cdr(station, fields, t, tid, values, sigmas, TB)
+        # rclpy leaves its alignment padding uninitialised: compare the message, and the
+        # bytes everywhere but in the padding
+        assert deserialize_message(raw, PointCloud2) == msg
+        assert len(raw) == len(want)
+        assert raw[-1 - len(msg.data) :] == want[-1 - len(msg.data) :]

@@ -4,18 +4,20 @@ from __future__ import annotations
 
 import numpy as np
 from nav_msgs.msg import Odometry
+from rclpy.serialization import serialize_message
 from sensor_msgs.msg import PointCloud2
 
 from orbit_tracking.core.sim.simulator import SimulationResult
 from orbit_tracking.core.sim.stream import Event
 from orbit_tracking.ros.conversions import (
     TimeBase,
+    measurements_to_cdr,
     measurements_to_cloud,
     station_state_to_odometry,
     target_state_to_odometry,
 )
 
-__all__ = ['event_message', 'event_topic']
+__all__ = ['event_cdr', 'event_message', 'event_topic']
 
 
 def event_topic(ev: Event) -> str:
@@ -62,3 +64,16 @@ def event_message(
         np.diag(ts.velocity_sigma[a] ** 2),
         timebase,
     )
+
+
+def event_cdr(result: SimulationResult, ev: Event, timebase: TimeBase) -> tuple[str, bytes]:
+    """The message type and serialised bytes of an event's message, for a bag writer
+    (measurements packed straight into bytes, :func:`measurements_to_cdr`)."""
+    if ev.kind == 'measurement':
+        m = result.measurements[ev.key]
+        a, b = ev.start, ev.stop
+        raw = measurements_to_cdr(
+            ev.key, m.fields, m.time[a:b], m.target_id[a:b], m.values[a:b], m.sigmas[a:b], timebase
+        )
+        return 'sensor_msgs/msg/PointCloud2', raw
+    return 'nav_msgs/msg/Odometry', bytes(serialize_message(event_message(result, ev, timebase)))

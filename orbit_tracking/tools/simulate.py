@@ -14,7 +14,7 @@ from orbit_tracking.core.sim.stream import EventStream
 from orbit_tracking.ros import qos
 from orbit_tracking.ros.bag import BagWriter
 from orbit_tracking.ros.conversions import TimeBase
-from orbit_tracking.ros.messages import event_message, event_topic
+from orbit_tracking.ros.messages import event_cdr, event_topic
 
 __all__ = ['scenario_custom_data', 'simulate_to_bag']
 
@@ -67,6 +67,6 @@ def simulate_to_bag(
                 profile = qos.STATION_STATE_MOVING if ev.key in moving else qos.STATION_STATE_FIXED
             else:
                 profile = qos.STATE_STREAM
-            msg = event_message(result, ev, timebase)
-            bag.write(event_topic(ev), msg, timebase.to_ns(ev.time), profile)
+            msgtype, raw = event_cdr(result, ev, timebase)
+            bag.write_raw(event_topic(ev), msgtype, raw, timebase.to_ns(ev.time), profile)
         return bag.count

@@ -22,7 +22,8 @@ Submodules (every public name is re-exported here; import from this package):
 
 * :mod:`~orbit_tracking.ros.conversions.time`: :class:`TimeBase`, :func:`stamp_ns`;
 * :mod:`~orbit_tracking.ros.conversions.measurements`: :class:`MeasurementBatch`,
-  :func:`measurements_to_cloud`, :func:`cloud_to_measurements`,
+  :func:`measurements_to_cloud` (:func:`measurements_to_cdr` already serialised),
+  :func:`cloud_to_measurements`,
   :func:`clouds_to_measurements` (many messages in one pass);
 * :mod:`~orbit_tracking.ros.conversions.wire`: :func:`parse_cloud`, :func:`parse_odometry`
   (a ``PointCloud2`` or ``Odometry`` read from its serialised bytes, without rclpy),
@@ -49,6 +50,7 @@ from orbit_tracking.ros.conversions.measurements import (
     MeasurementBatch,
     cloud_to_measurements,
     clouds_to_measurements,
+    measurements_to_cdr,
     measurements_to_cloud,
 )
 from orbit_tracking.ros.conversions.states import (
@@ -101,6 +103,7 @@ __all__ = [
     'diagnostic_status',
     'diagnostics_to_biases',
     'fix_to_msg',
+    'measurements_to_cdr',
     'measurements_to_cloud',
     'msg_to_fix',
     'msg_to_window_residuals',

@@ -28,17 +28,19 @@ from orbit_tracking.ros.conversions._common import (
     _FLOAT64,
     _UINT32,
     FloatArray,
+    _dt,
     _layout_problem,
     _pack_cloud,
 )
 from orbit_tracking.ros.conversions.time import TimeBase, checked_stamp_ns
-from orbit_tracking.ros.conversions.wire import WireCloud
+from orbit_tracking.ros.conversions.wire import WireCloud, cloud_cdr
 
 __all__ = [
     'MeasurementBatch',
     'checked_stamp_ns_of',
     'cloud_to_measurements',
     'clouds_to_measurements',
+    'measurements_to_cdr',
     'measurements_to_cloud',
 ]
 
@@ -116,6 +118,34 @@ def measurements_to_cloud(
     The header stamp is the first row's epoch; a ``time_offset`` field is added only when
     rows have different epochs (a batch).
     """
+    arr, ns0 = _measurement_points(fields, time, target_id, values, sigmas, timebase)
+    return _pack_cloud(arr, ns0, station_id)
+
+
+def measurements_to_cdr(
+    station_id: str,
+    fields: Sequence[str],
+    time: FloatArray,
+    target_id: NDArray[np.uint32],
+    values: FloatArray,
+    sigmas: FloatArray,
+    timebase: TimeBase,
+) -> bytes:
+    """:func:`measurements_to_cloud` already serialised (the bytes ``serialize_message`` would
+    give), for a bag writer: no message object is built."""
+    arr, ns0 = _measurement_points(fields, time, target_id, values, sigmas, timebase)
+    return cloud_cdr(arr, ns0, station_id, [_dt(name) for name in arr.dtype.names or ()])
+
+
+def _measurement_points(
+    fields: Sequence[str],
+    time: FloatArray,
+    target_id: NDArray[np.uint32],
+    values: FloatArray,
+    sigmas: FloatArray,
+    timebase: TimeBase,
+) -> tuple[np.ndarray, int]:
+    """The structured point array of a measurement message and its stamp [ns]."""
     fields = tuple(fields)
     bad = [f for f in fields if f not in FIELDS]
     if bad:
@@ -137,7 +167,7 @@ def measurements_to_cloud(
     if batched:
         arr['time_offset'] = (ns - ns[0]) * 1e-9
     arr['target_id'] = target_id
-    return _pack_cloud(arr, int(ns[0]), station_id)
+    return arr, int(ns[0])
 
 
 _Group = tuple[str, tuple[str, ...], np.dtype, list[bytes], list[float], list[int]]

@@ -20,6 +20,7 @@ which decides whether the bytes are a message at all.
 from __future__ import annotations
 
 import struct
+from collections.abc import Sequence
 from dataclasses import dataclass
 from types import SimpleNamespace
 from typing import NamedTuple
@@ -32,6 +33,7 @@ __all__ = [
     'WireHeader',
     'WireOdometry',
     'WireStamp',
+    'cloud_cdr',
     'parse_cloud',
     'parse_odometry',
 ]
@@ -236,4 +238,49 @@ def parse_odometry(raw: bytes) -> WireOdometry | None:
     )
     return WireOdometry(
         WireHeader(WireStamp(int(sec), int(nanosec)), frame_id), child, pose, twist
+    )
+
+
+def _string_cdr(out: bytearray, text: str) -> None:
+    out += b'\0' * (-(len(out) - 4) % 4)
+    b = text.encode('utf-8') + b'\0'
+    out += _U32.pack(len(b)) + b
+
+
+_cloud_middles: dict[tuple[str, np.dtype, int], bytes] = {}
+
+
+def cloud_cdr(arr: np.ndarray, stamp_ns: int, frame_id: str, datatypes: Sequence[int]) -> bytes:
+    """The serialised ``PointCloud2`` (little-endian CDR, as rclpy's ``serialize_message``
+    writes it) of the structured array ``arr``: one row, dense, a field per dtype field at its
+    offset with the ``PointField`` datatype ``datatypes[i]`` and count 1, stamped
+    ``stamp_ns``. Everything between the stamp and the point bytes is kept per (station,
+    layout, width), so a stream of messages costs a join."""
+    n = int(arr.shape[0])
+    key = (frame_id, arr.dtype, n)
+    middle = _cloud_middles.get(key)
+    if middle is None:
+        out = bytearray(12)
+        _string_cdr(out, frame_id)
+        out += b'\0' * (-(len(out) - 4) % 4)
+        out += _TWO_U32.pack(1, n)
+        names = arr.dtype.names or ()
+        out += _U32.pack(len(names))
+        for name, datatype in zip(names, datatypes, strict=True):
+            _string_cdr(out, name)
+            out += b'\0' * (-(len(out) - 4) % 4)
+            out += _U32.pack(int(arr.dtype.fields[name][1])) + bytes([datatype])
+            out += b'\0' * (-(len(out) - 4) % 4)
+            out += _U32.pack(1)
+        out += b'\0'  # is_bigendian
+        out += b'\0' * (-(len(out) - 4) % 4)
+        step = arr.dtype.itemsize
+        out += _THREE_U32.pack(step, step * n, step * n)
+        middle = bytes(out[12:])
+        if len(_cloud_middles) >= 1024:
+            _cloud_middles.clear()
+        _cloud_middles[key] = middle
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    return b''.join(
+        (b'\x00\x01\x00\x00', _STAMP.pack(sec, nanosec), middle, arr.tobytes(), b'\x01')
     )
