@@ -19,14 +19,17 @@ from test_conversions import KIND_FIELDS, TB, _hand_built_cloud, _rows
 
 from orbit_tracking.core.errors import MeasurementError
 from orbit_tracking.ros.conversions import (
+    WireCloud,
     cloud_to_measurements,
     clouds_to_measurements,
+    fix_to_msg,
     measurements_to_cdr,
     measurements_to_cloud,
     odometry_to_station_state,
     odometry_to_target_state,
     parse_cloud,
     parse_odometry,
+    read_message,
     station_state_to_odometry,
     target_state_to_odometry,
 )
@@ -242,3 +245,21 @@ def test_measurements_to_cdr_serialises_the_message_of_measurements_to_cloud(
         assert deserialize_message(raw, PointCloud2) == msg
         assert len(raw) == len(want)
         assert raw[-1 - len(msg.data) :] == want[-1 - len(msg.data) :]
+
+
+def test_read_message_reads_directly_or_through_rclpy_and_refuses_garbage() -> None:
+    cloud = _messages()[0]
+    raw = bytes(serialize_message(cloud))
+    assert isinstance(read_message(raw, 'sensor_msgs/msg/PointCloud2'), WireCloud)
+    # a little-endian message the direct reader declines (is_dense 2) goes to rclpy
+    odd = raw[:-1] + b'\x02'
+    assert parse_cloud(odd) is None
+    assert isinstance(read_message(odd, 'sensor_msgs/msg/PointCloud2'), PointCloud2)
+    # a type without a direct reader
+    fix = fix_to_msg('earth', 1.0, np.ones(3), np.eye(3), TB)
+    got = read_message(
+        bytes(serialize_message(fix)), 'geometry_msgs/msg/PoseWithCovarianceStamped'
+    )
+    assert got == fix
+    with pytest.raises(ValueError, match='not a sensor_msgs/msg/PointCloud2'):
+        read_message(raw[:30], 'sensor_msgs/msg/PointCloud2')

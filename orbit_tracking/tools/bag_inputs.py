@@ -33,8 +33,7 @@ from orbit_tracking.ros.conversions import (
     msg_to_fix,
     odometry_to_station_state,
     odometry_to_target_state,
-    parse_cloud,
-    parse_odometry,
+    read_message,
     stamp_ns,
 )
 
@@ -217,26 +216,14 @@ class BagInput:
     data: Any
 
 
-_WIRE_READERS = {
-    'sensor_msgs/msg/PointCloud2': parse_cloud,
-    'nav_msgs/msg/Odometry': parse_odometry,
-}
+_WIRE_TYPES = (INPUT_TYPES['measurements'], 'nav_msgs/msg/Odometry')
 """Message types read straight from their bytes (:mod:`orbit_tracking.ros.conversions.wire`)."""
 
 
 def _from_wire(raw: bytes, msgtype: str, topic: str, bag: str | Path) -> Any:
-    """A message from its bytes: read directly, or by rclpy when the direct reader declines
-    (not little-endian CDR, or malformed)."""
-    msg = _WIRE_READERS[msgtype](raw)
-    if msg is not None:
-        return msg
-    from rclpy.serialization import deserialize_message
-
-    from orbit_tracking.ros.bag import message_class
-
     try:
-        return deserialize_message(raw, message_class(msgtype))
-    except Exception as exc:  # a corrupt message: one line, not a traceback
+        return read_message(raw, msgtype)
+    except ValueError as exc:  # a corrupt message: one line, not a traceback
         raise BagError(
             f'{bag}: a message on {topic} cannot be read: {exc} (truncated or corrupt file?)'
         ) from exc
@@ -285,7 +272,7 @@ def bag_inputs(
 
     bar = tqdm(total=sum(topics.values()), unit='msg', disable=not progress, desc=desc)
     try:
-        for m in read_bag(bag, topics, raw_types=_WIRE_READERS):
+        for m in read_bag(bag, topics, raw_types=_WIRE_TYPES):
             bar.update(1)
             topic = m.topic.lstrip('/')
             parts = topic.split('/')

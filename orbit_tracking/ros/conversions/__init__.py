@@ -27,6 +27,7 @@ Submodules (every public name is re-exported here; import from this package):
   :func:`clouds_to_measurements` (many messages in one pass);
 * :mod:`~orbit_tracking.ros.conversions.wire`: :func:`parse_cloud`, :func:`parse_odometry`
   (a ``PointCloud2`` or ``Odometry`` read from its serialised bytes, without rclpy),
+  :func:`read_message` (those, or rclpy's deserialisation), :func:`cloud_cdr`,
   :class:`WireCloud`, :class:`WireOdometry`;
 * :mod:`~orbit_tracking.ros.conversions.states`: :class:`StationStateSample`,
   :class:`TargetStateSample`, station and target states <-> ``Odometry``, target frame
@@ -79,8 +80,10 @@ from orbit_tracking.ros.conversions.windows import (
 from orbit_tracking.ros.conversions.wire import (
     WireCloud,
     WireOdometry,
+    cloud_cdr,
     parse_cloud,
     parse_odometry,
+    read_message,
 )
 
 __all__ = [
@@ -98,6 +101,7 @@ __all__ = [
     'checked_stamp_ns',
     'cloud_to_measurements',
     'cloud_to_window_states',
+    'cloud_cdr',
     'clouds_to_measurements',
     'diagnostic_array',
     'diagnostic_status',
@@ -111,6 +115,7 @@ __all__ = [
     'odometry_to_target_state',
     'parse_cloud',
     'parse_odometry',
+    'read_message',
     'stamp_ns',
     'station_state_to_odometry',
     'target_frame_id',

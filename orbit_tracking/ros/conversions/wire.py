@@ -13,8 +13,10 @@ The results, :class:`WireCloud` and :class:`WireOdometry`, have the attribute na
 messages that the decoders (:func:`~orbit_tracking.ros.conversions.cloud_to_measurements`,
 ``odometry_to_*``) read, so the checks of the contract stay in one place. Only
 little-endian CDR (what every ROS 2 platform we meet writes) is read here; anything else,
-and anything this parser finds malformed, is ``None``: the caller then falls back to rclpy,
-which decides whether the bytes are a message at all.
+and anything this parser finds malformed, is ``None``. :func:`read_message` is what a
+reader of serialised messages calls: the direct reader where there is one, rclpy where
+there is none or where it declines (rclpy then decides whether the bytes are a message at
+all).
 """
 
 from __future__ import annotations
@@ -23,9 +25,10 @@ import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
 from types import SimpleNamespace
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
+from rclpy.serialization import deserialize_message
 
 __all__ = [
     'WireCloud',
@@ -36,6 +39,7 @@ __all__ = [
     'cloud_cdr',
     'parse_cloud',
     'parse_odometry',
+    'read_message',
 ]
 
 _U32 = struct.Struct('<I')
@@ -284,3 +288,34 @@ def cloud_cdr(arr: np.ndarray, stamp_ns: int, frame_id: str, datatypes: Sequence
     return b''.join(
         (b'\x00\x01\x00\x00', _STAMP.pack(sec, nanosec), middle, arr.tobytes(), b'\x01')
     )
+
+
+_READERS = {
+    'sensor_msgs/msg/PointCloud2': parse_cloud,
+    'nav_msgs/msg/Odometry': parse_odometry,
+}
+
+
+def read_message(raw: bytes, msgtype: str, cls: type | None = None) -> Any:
+    """The message of type ``msgtype`` (``pkg/msg/Name``) serialised in ``raw``: a
+    :class:`WireCloud` or :class:`WireOdometry` when the direct reader can read it, else
+    rclpy's message (its class ``cls``, or looked up).
+
+    Raises
+    ------
+    ValueError
+        Not a message of that type (rclpy's error, in one line).
+    """
+    reader = _READERS.get(msgtype)
+    msg = reader(raw) if reader is not None else None
+    if msg is not None:
+        return msg
+    if cls is None:
+        import importlib
+
+        pkg, _, name = msgtype.split('/')
+        cls = getattr(importlib.import_module(f'{pkg}.msg'), name)
+    try:
+        return deserialize_message(raw, cls)
+    except Exception as exc:  # whatever rclpy raises for bytes that are no message
+        raise ValueError(f'not a {msgtype}: {exc}') from exc
