@@ -95,10 +95,69 @@ class _StationBlock:
     # declared * factor``): above 1 when the residuals show white noise larger than declared
     declared: FloatArray = field(default_factory=lambda: np.zeros((0, 0)))
     factor: FloatArray = field(default_factory=lambda: np.ones(0))
+    # pw and vw per epoch as dense rows over the columns either touches (see _compact)
+    compact: tuple[object, object, NDArray[np.intp], FloatArray, FloatArray] | None = None
 
     def __post_init__(self) -> None:
         self.declared = self.sigmas.copy()
         self.factor = np.ones(len(self.fields))
+
+    def jacobian(
+        self, hw: FloatArray, use: NDArray[np.bool_], offset: int, n: int
+    ) -> sp.csr_matrix:
+        """Rows ``d (whitened value) / d beta`` of the used (epoch, field) pairs: row
+        ``(i, j)`` is ``sum_c hw[i, j, c] pw[3 i + c] + hw[i, j, 3 + c] vw[3 i + c]``, its
+        columns moved right by ``offset`` in an ``n``-column matrix.
+
+        The same numbers, and the same sparsity (exact zeros left out), as the sparse
+        products ``_row_contract(hw[..., :3], pw) + _row_contract(hw[..., 3:], vw)`` with the
+        rows selected and shifted (``shift_columns``), each term added in the same order;
+        built from a dense (epochs, 3, touched columns) copy of the designs made once per
+        design, without a sparse product per evaluation."""
+        if (
+            self.compact is None
+            or self.compact[0] is not self.pw
+            or self.compact[1] is not self.vw
+        ):
+            self.compact = (self.pw, self.vw, *_compact(self.pw, self.vw))
+        _, _, cols, pd, vd = self.compact
+        i, j = np.nonzero(use)
+        hp, hv = hw[i, j, :3], hw[i, j, 3:]
+        p, v = pd[i], vd[i]  # (rows, 3, w)
+        pos = hp[:, 0, None] * p[:, 0] + hp[:, 1, None] * p[:, 1] + hp[:, 2, None] * p[:, 2]
+        vel = hv[:, 0, None] * v[:, 0] + hv[:, 1, None] * v[:, 1] + hv[:, 2, None] * v[:, 2]
+        data = pos + vel
+        keep = data != 0
+        counts = keep.sum(axis=1)
+        indptr = np.zeros(i.size + 1, dtype=np.int64)
+        np.cumsum(counts, out=indptr[1:])
+        return sp.csr_matrix((data[keep], (cols[i] + offset)[keep], indptr), shape=(i.size, n))
+
+
+def _compact(
+    pw: sp.csr_matrix, vw: sp.csr_matrix
+) -> tuple[NDArray[np.intp], FloatArray, FloatArray]:
+    """For each epoch ``i`` the sorted columns rows ``3 i .. 3 i + 2`` of ``pw`` or ``vw``
+    touch (padded with column 0 and zero values to the widest), and those rows' values
+    there: ``cols`` (m, w), ``p``, ``v`` (m, 3, w)."""
+    m = pw.shape[0] // 3
+    touched = np.zeros((m, pw.shape[1]), dtype=bool)
+    for d in (pw, vw):
+        rows = np.repeat(np.arange(d.shape[0]), np.diff(d.indptr))
+        touched[rows // 3, d.indices] = True
+    counts = touched.sum(axis=1)
+    w = int(counts.max()) if m else 0
+    ti, tc = np.nonzero(touched)  # row-major: columns ascending within each epoch
+    slot = np.arange(ti.size) - np.repeat(np.cumsum(counts) - counts, counts)
+    cols = np.zeros((m, w), dtype=np.intp)
+    cols[ti, slot] = tc
+    out = []
+    for d in (pw, vw):
+        dense = d.toarray().reshape(m, 3, -1)
+        vals = np.zeros((m, 3, w))
+        vals[ti, :, slot] = dense[ti, :, tc]
+        out.append(vals)
+    return cols, out[0], out[1]
 
 
 @dataclass
@@ -145,30 +204,40 @@ class Problem:
         self.trajs = {tid: s[0] for tid, s in solutions.items()}
         self.origin = {tid: tr.origin for tid, tr in self.trajs.items()}
         self.stations: list[_StationBlock] = []
-        for s in obs.stations:
+        picks = [
+            (s, tid, np.flatnonzero(s.table.target_id == tid))
+            for s in obs.stations
+            for tid in self.trajs
+        ]
+        picks = [(s, tid, idx) for s, tid, idx in picks if idx.size]
+        # one design per target and derivative for the epochs of all its stations (a row
+        # depends on its epoch alone), cut into the stations' blocks
+        designs = {}
+        for tid, traj in self.trajs.items():
+            parts = [s.table.time[idx] for s, k, idx in picks if k == tid]
+            t_all = np.concatenate(parts) if parts else np.zeros(0)
+            if t_all.size:
+                designs[tid] = (traj.world_design(t_all, 0), traj.world_design(t_all, 1))
+        start = dict.fromkeys(self.trajs, 0)
+        for s, tid, idx in picks:
             tab = s.table
-            for tid in self.trajs:
-                sel = tab.target_id == tid
-                if not np.any(sel):
-                    continue
-                idx = np.flatnonzero(sel)
-                t = tab.time[idx]
-                traj = self.trajs[tid]
-                valid = np.isfinite(tab.values[idx]) & (tab.sigmas[idx] > 0)
-                self.stations.append(
-                    _StationBlock(
-                        tab.station_id,
-                        tid,
-                        tab.fields,
-                        t,
-                        tab.values[idx],
-                        tab.sigmas[idx],
-                        s.pose.take(idx),
-                        traj.world_design(t, 0),
-                        traj.world_design(t, 1),
-                        valid,
-                    )
+            r0, r1 = start[tid], start[tid] + idx.size
+            start[tid] = r1
+            valid = np.isfinite(tab.values[idx]) & (tab.sigmas[idx] > 0)
+            self.stations.append(
+                _StationBlock(
+                    tab.station_id,
+                    tid,
+                    tab.fields,
+                    tab.time[idx],
+                    tab.values[idx],
+                    tab.sigmas[idx],
+                    s.pose.take(idx),
+                    designs[tid][0][3 * r0 : 3 * r1],
+                    designs[tid][1][3 * r0 : 3 * r1],
+                    valid,
                 )
+            )
         self.telemetry: list[TelemetryBlock] = []
         if cfg.use_telemetry:
             for tid, tel in obs.telemetry.items():
@@ -328,9 +397,7 @@ class Problem:
             if jacobian:
                 assert h is not None
                 hw = h / b.sigmas[:, :, None]
-                jm = _row_contract(hw[:, :, :3], b.pw) + _row_contract(hw[:, :, 3:], b.vw)
-                jm = jm[np.flatnonzero(use.ravel())]
-                jm = shift_columns(jm, self.offsets[b.target], self.n)
+                jm = b.jacobian(hw, use, self.offsets[b.target], self.n)
                 if dpar is not None:
                     dw = (dpar / b.sigmas[:, :, None])[use]  # (rows, p)
                     cols = self.bias_offset + np.asarray(b.bias_index)
