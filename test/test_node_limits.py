@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from conftest import default_context
+from rclpy.serialization import serialize_message
 from sensor_msgs.msg import PointCloud2
 
 from orbit_tracking.ros.conversions import TimeBase, measurements_to_cloud, window_states_to_cloud
@@ -92,11 +93,16 @@ def test_bad_measurement_messages_are_counted_by_reason_and_the_node_goes_on():
             wild.data = arr.tobytes()
             for msg in (bad_stamp, padded, wild, _ranges(1, t=2.0)):
                 node._on_measurements(msg, 'cw01')
+            # as the raw subscription gives them: bytes that are no message, and good ones
+            good = bytes(serialize_message(_ranges(1, t=3.0)))
+            for data in (good[:20], b'\x00\x01\x00\x00' + b'\xff' * 40, good):
+                node._on_measurements(data, 'cw01')
             c = node.counts
             assert c['invalid_messages_stamp'] == 1 and c['invalid_messages_layout'] == 1
-            assert c['invalid_messages'] == 2
+            assert c['invalid_messages_cdr'] == 2
+            assert c['invalid_messages'] == 4
             assert c['rejected_points_range_out_of_range'] == 1
-            assert node.buffer.latest_time() == 2.0  # the good rows were taken
+            assert node.buffer.latest_time() == 3.0  # the good rows were taken
         finally:
             node.destroy_node()
 

@@ -77,6 +77,7 @@ from orbit_tracking.ros.conversions import (
     checked_stamp_ns,
     cloud_to_measurements,
     odometry_to_station_state,
+    read_message,
 )
 from orbit_tracking.ros.guard import guarded
 from orbit_tracking.ros.parameters import declare
@@ -233,11 +234,14 @@ class StationInputs(Node):
                 )
 
     def _subscribe(self, sid: str) -> None:
+        # raw: the bytes are read by conversions.read_message (no message object per point
+        # batch; rclpy only for what the direct reader declines)
         self.subs[sid] = self.create_subscription(
             PointCloud2,
             f'stations/{sid}/measurements',
             lambda m, s=sid: self._guarded('measurements', self._on_measurements, m, s),
             qos.MEASUREMENTS_SUB,
+            raw=True,
         )
         self.get_logger().info(f'subscribed to station {sid}')
 
@@ -292,8 +296,20 @@ class StationInputs(Node):
         self.world_frame = msg.header.frame_id
         self._add_pose(sid, st)
 
-    def _on_measurements(self, msg: PointCloud2, sid: str) -> None:
+    def _on_measurements(self, data: bytes | PointCloud2, sid: str) -> None:
+        """One message of a station's measurements topic: its serialised bytes (the raw
+        subscription) or, from in-process callers, the message itself."""
         self.counts['measurement_messages'] += 1
+        try:
+            msg = (
+                read_message(data, 'sensor_msgs/msg/PointCloud2', PointCloud2)
+                if isinstance(data, bytes | bytearray | memoryview)
+                else data
+            )
+        except ValueError as exc:
+            self.counts['invalid_messages_cdr'] += 1
+            self._reject('invalid_messages', f'measurement message rejected: {exc}')
+            return
         self.counts['measurements_received'] += int(msg.width) * int(msg.height)
         try:
             tb = self._timebase(checked_stamp_ns(msg.header.stamp))

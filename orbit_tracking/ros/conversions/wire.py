@@ -306,6 +306,7 @@ def read_message(raw: bytes, msgtype: str, cls: type | None = None) -> Any:
     ValueError
         Not a message of that type (rclpy's error, in one line).
     """
+    raw = bytes(raw)
     reader = _READERS.get(msgtype)
     msg = reader(raw) if reader is not None else None
     if msg is not None:
