@@ -9,6 +9,8 @@ implausible points); station and target states, and a broken one.
 
 from __future__ import annotations
 
+from collections import Counter
+
 import numpy as np
 import pytest
 from nav_msgs.msg import Odometry
@@ -263,3 +265,68 @@ def test_read_message_reads_directly_or_through_rclpy_and_refuses_garbage() -> N
     assert got == fix
     with pytest.raises(ValueError, match='not a sensor_msgs/msg/PointCloud2'):
         read_message(raw[:30], 'sensor_msgs/msg/PointCloud2')
+
+
+def _bag_of(tmp_path, msgs) -> str:
+    from orbit_tracking.core import frames
+    from orbit_tracking.ros.bag import BagWriter
+
+    folder = tmp_path / 'bag'
+    lat, lon = np.radians(40.9), np.radians(100.3)
+    p, rot = frames.geodetic_to_ecef(lat, lon, 1000.0), frames.enu_rotation(lat, lon)
+    with BagWriter(folder) as bag:
+        for k in range(6):
+            sid = f'st{k:02d}'
+            state = station_state_to_odometry(
+                sid, 'earth', 0.5, p, np.zeros(3), rot, np.zeros(3), TB
+            )
+            bag.write(f'stations/{sid}/state', state, TB.to_ns(0.5))
+        for j, m in enumerate(msgs):
+            # the topic of the station it names (a damaged one with an empty name: st00's)
+            sid = m.header.frame_id or 'st00'
+            bag.write(f'stations/{sid}/measurements', m, TB.to_ns(1.0 + 0.01 * j))
+    return str(folder)
+
+
+def test_reading_a_bag_in_chunks_gives_the_rows_and_counts_of_one_message_at_a_time(
+    tmp_path, monkeypatch
+) -> None:
+    """read_for_estimation decodes each station's messages together, a chunk at a time: the
+    same buffer and counts as the messages one by one (bag_inputs without deferring), for
+    any chunk size."""
+    from orbit_tracking.tools import bag_inputs as bi
+
+    msgs = _messages() * 3
+    bag = _bag_of(tmp_path, msgs)
+
+    def one_by_one():
+        ctx, counts = bi.BagContext(), Counter()
+        rows = [
+            item.data
+            for item in bi.bag_inputs(bag, ctx, counts, False, '')
+            if item.kind == 'measurements'
+        ]
+        return _rows_of(rows), +counts
+
+    def chunked(size):
+        monkeypatch.setattr(bi, '_DEFER_CHUNK', size)
+        ctx = bi.BagContext()
+        buf, counts = bi.read_for_estimation(bag, ctx, False)
+        obs = buf.observations()
+        rows = []
+        for s in obs.stations:
+            t = s.table
+            for k in range(len(t)):
+                rows.append(
+                    (t.station_id, t.time[k], int(t.target_id[k]), *t.values[k], *t.sigmas[k])
+                )
+        return sorted(rows, key=repr), counts
+
+    want_rows, want_counts = one_by_one()
+    assert want_counts['invalid_messages'] == 21 and want_counts['rejected_points'] == 6
+    # the buffer drops exact repeats (the message set three times): compare distinct rows
+    want = sorted({(r[0], *r[2:]) for r in want_rows}, key=repr)
+    for size in (1, 5, 4096):
+        rows, counts = chunked(size)
+        assert counts == want_counts, size
+        assert repr(rows) == repr(want), size

@@ -216,6 +216,10 @@ class BagInput:
     data: Any
 
 
+_DEFER_CHUNK = 4096
+"""Measurement messages of one station held before they are decoded together (the
+memory a long pass's messages would take held to the end is bounded this way)."""
+
 _WIRE_TYPES = (INPUT_TYPES['measurements'], 'nav_msgs/msg/Odometry')
 """Message types read straight from their bytes (:mod:`orbit_tracking.ros.conversions.wire`)."""
 
@@ -270,6 +274,14 @@ def bag_inputs(
         measured.add(b.station_id)
         return True
 
+    def decode_deferred(station: str, tb: TimeBase) -> Iterator[BagInput]:
+        batches, errors = clouds_to_measurements(deferred.pop(station, []), tb)
+        if errors:
+            counts['invalid_messages'] += len(errors)
+        for b in batches:
+            if accepted(b, station):
+                yield BagInput('measurements', b)
+
     bar = tqdm(total=sum(topics.values()), unit='msg', disable=not progress, desc=desc)
     try:
         for m in read_bag(bag, topics, raw_types=_WIRE_TYPES):
@@ -280,7 +292,10 @@ def bag_inputs(
             tb = ctx.tb(stamp_ns(msg.header.stamp))
             if len(parts) == 3 and parts[2] == 'measurements':
                 if defer_measurements:
-                    deferred.setdefault(parts[1], []).append(msg)
+                    held = deferred.setdefault(parts[1], [])
+                    held.append(msg)
+                    if len(held) >= _DEFER_CHUNK:
+                        yield from decode_deferred(parts[1], tb)
                     continue
                 try:
                     b = cloud_to_measurements(msg, tb)
@@ -317,14 +332,9 @@ def bag_inputs(
                     counts['invalid_fix'] += 1
             elif topic == 'truth/state':
                 yield BagInput('truth', odometry_to_target_state(msg, tb))
-        for station, clouds in deferred.items():
+        for station in list(deferred):
             # the time base was set by the bag's first message
-            batches, errors = clouds_to_measurements(clouds, ctx.tb(0))
-            if errors:
-                counts['invalid_messages'] += len(errors)
-            for b in batches:
-                if accepted(b, station):
-                    yield BagInput('measurements', b)
+            yield from decode_deferred(station, ctx.tb(0))
         ctx.stations_without_state = {
             sid: _why_no_state(sid, topics, bad_state[sid])
             for sid in sorted(measured - with_state)
