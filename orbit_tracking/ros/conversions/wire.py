@@ -92,8 +92,11 @@ class _Reader:
         self.buf = buf
         self.pos = pos
 
+    def align(self, size: int) -> None:
+        self.pos += -(self.pos - 4) % size
+
     def u32(self) -> int:
-        self.pos += -(self.pos - 4) % 4
+        self.align(4)
         if self.pos + 4 > len(self.buf):
             raise IndexError('past the end')
         (v,) = _U32.unpack_from(self.buf, self.pos)
@@ -156,12 +159,12 @@ def parse_cloud(raw: bytes) -> WireCloud | None:
         sec, nanosec = _STAMP.unpack_from(raw, 4)
         r.pos = 12
         frame_id = r.string()
-        r.pos += -(r.pos - 4) % 4
+        r.align(4)
         height, width = _TWO_U32.unpack_from(raw, r.pos)
         r.pos += 8
         fields = _fields(r)
         is_bigendian = r.u8()
-        r.pos += -(r.pos - 4) % 4
+        r.align(4)
         point_step, row_step, n = _THREE_U32.unpack_from(raw, r.pos)
         r.pos += 12
         data = raw[r.pos : r.pos + n]
@@ -229,7 +232,8 @@ def parse_odometry(raw: bytes) -> WireOdometry | None:
         child = r.string()
     except (IndexError, UnicodeDecodeError):
         return None
-    start = r.pos + (-(r.pos - 4) % 8)
+    r.align(8)
+    start = r.pos
     if start + 8 * _ODOMETRY_DOUBLES > len(raw):
         return None
     d = np.frombuffer(raw, '<f8', _ODOMETRY_DOUBLES, start)
