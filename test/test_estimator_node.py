@@ -397,6 +397,7 @@ def test_estimator_node_solves_windows_from_a_live_pass_close_to_truth(
     )
     last = diags[-1]
     assert int(last['windows_failed']) == 0
+    assert last['solving_window'] == ''  # nothing on the worker once both are out
     assert int(last['used_cw03']) > 0 and int(last['used_opt01']) > 0
     assert 0.5 < float(last['last_chi2_dof']) < 2.0
     assert math.isclose(float(last['last_window_end']), 30.0, abs_tol=1e-6)

@@ -31,6 +31,7 @@ is one call into :func:`orbit_tracking.core.estimation.estimator.estimate` (with
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 import traceback
@@ -79,6 +80,7 @@ from orbit_tracking.ros.conversions import (
 from orbit_tracking.ros.journal import EstimatorJournal
 from orbit_tracking.ros.parameters import declare
 from orbit_tracking.ros.runner import run_node
+from orbit_tracking.ros.solve_worker import Job, SolveWorker
 from orbit_tracking.ros.station_inputs import StationInputs
 
 MODELS = ('spline', 'rocket', 'adjoint')
@@ -449,6 +451,7 @@ class EstimatorNode(StationInputs):
         self.last_ok = True
         self.last_data = time.monotonic()
         self.flushed = True
+        self._flush_windows = 0  # windows solved since the stream went silent
         history = qos.window_stream(
             declare(
                 self,
@@ -483,6 +486,7 @@ class EstimatorNode(StationInputs):
         )
         self.create_service(Trigger, '~/solve', self._on_solve)
         self._start_station_inputs(station_filter, self.time_reference)
+        self.worker = SolveWorker(self, lambda: self._guarded('tick', self._tick))
         self.create_timer(0.2, lambda: self._guarded('tick', self._tick))
         self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info(
@@ -579,7 +583,7 @@ class EstimatorNode(StationInputs):
             self._reject('invalid_fix', f'fix rejected: {exc}')
 
     def _on_solve(self, _req: Trigger.Request, resp: Trigger.Response) -> Trigger.Response:
-        spans = self._solve_due(final=True)
+        spans = self._solve_due(final=True, block=True)
         solved = [s for s, ok in spans if ok]
         resp.success = bool(solved)
         if not spans:
@@ -592,22 +596,30 @@ class EstimatorNode(StationInputs):
 
     # -- windows -------------------------------------------------------------------
     def _tick(self) -> None:
-        if self._solve_due(final=False):
-            # messages waited in the queues while we solved: that was not silence
-            self.last_data = time.monotonic()
-        if not self.flushed and time.monotonic() - self.last_data >= self.flush_after:
-            spans = self._solve_due(final=True)
-            self.flushed = len(spans) < _MAX_WINDOWS_PER_CALL  # else more on the next tick
-            if spans:
-                self.get_logger().info(
-                    f'no measurements for {self.flush_after:g} s: solved {len(spans)} '
-                    'window(s) up to the newest stamp'
-                )
+        """On the timer and whenever the worker finished a solve: publish it, start the
+        next due window; at the end of the stream (silence) every window there is."""
+        spans = self._solve_due(final=False)
+        if self.flushed or not self._silent():
+            return
+        last = self._solve_due(final=True)
+        self._flush_windows += len(spans) + len(last)
+        # done once nothing is in flight and nothing was left for the next tick
+        self.flushed = not self.worker.busy and len(last) < _MAX_WINDOWS_PER_CALL
+        if self.flushed and self._flush_windows:
+            self.get_logger().info(
+                f'no measurements for {self.flush_after:g} s: solved '
+                f'{self._flush_windows} window(s) up to the newest stamp'
+            )
+            self._flush_windows = 0
+
+    def _silent(self) -> bool:
+        """No input for ``flush_after`` wall seconds: the end of the stream."""
+        return time.monotonic() - self.last_data >= self.flush_after
 
     def _on_time_reset(self) -> str:
         """Time went back (see StationInputs): solve what is buffered as at the end of a
         stream, then start with an empty buffer and no previous window; counters carry on."""
-        spans = self._solve_due(final=True)
+        spans = self._solve_due(final=True, block=True)
         counts = self.buffer.counts
         self.buffer = self.journal.fresh_buffer()  # the journal starts afresh too
         self.buffer.counts.update(counts)
@@ -617,25 +629,34 @@ class EstimatorNode(StationInputs):
         self.flushed = True
         return f'{len(spans)} window(s) solved up to the old newest stamp'
 
-    def _solve_due(self, final: bool) -> list[tuple[Span, bool]]:
-        """Solve every window that is due (all there is with ``final``)."""
+    def _solve_due(self, final: bool, block: bool = False) -> list[tuple[Span, bool]]:
+        """Finish the window the worker solved (publish it) and hand it the next one that
+        is due (every one there is with ``final``). Without ``block`` this returns while a
+        solve runs (the worker wakes the executor when it is done: :meth:`_tick`);
+        with it, it waits for each solve (the ~/solve service, a time reset)."""
         out: list[tuple[Span, bool]] = []
         if self.timebase is None:
             return out
         latest = self.buffer.latest_time() if final else self._horizon()
-        with self._working():
-            while len(out) < _MAX_WINDOWS_PER_CALL:
-                start = -math.inf if self.scheduler.next_t0 is None else self.scheduler.next_t0
-                first = self.buffer.first_time(after=start)
-                span = self.scheduler.next_window(first, latest, final)
-                if span is None:
-                    break
-                out.append((span, self._solve(span, self.timebase)))
+        while len(out) < _MAX_WINDOWS_PER_CALL:
+            with self._working() if block else contextlib.nullcontext():
+                job = self.worker.take(block)
+            if job is not None:
+                out.append((job.context[0], self._finish(job)))
                 self.buffer.prune(self.scheduler.keep_from)
-            else:  # the rest waits for the next tick: timers, services and signals go on
-                self.get_logger().warning(
-                    f'{len(out)} windows solved in one go; the rest follows on the next tick'
-                )
+                continue
+            if self.worker.busy:
+                break
+            start = -math.inf if self.scheduler.next_t0 is None else self.scheduler.next_t0
+            first = self.buffer.first_time(after=start)
+            span = self.scheduler.next_window(first, latest, final)
+            if span is None:
+                break
+            self._begin(span, self.timebase)
+        else:  # the rest waits for the next tick: timers, services and signals go on
+            self.get_logger().warning(
+                f'{len(out)} windows solved in one go; the rest follows on the next tick'
+            )
         return out
 
     def _horizon(self) -> float:
@@ -662,26 +683,39 @@ class EstimatorNode(StationInputs):
                 return False
         return self.count_publishers('triangulation/fixes') > 0
 
-    def _solve(self, span: Span, tb: TimeBase) -> bool:
+    def _begin(self, span: Span, tb: TimeBase) -> None:
+        """Gather the window's inputs and hand its core call to the worker."""
         t0, t1 = span
-        wall = time.monotonic()
         obs = self.buffer.observations(t0, t1)
         withheld = Counter(self.buffer.withheld)
+        previous = self.previous or None
+        self.worker.submit((span, tb, obs, withheld), lambda: self._core(obs, t0, t1, previous))
+
+    def _core(
+        self, obs: Observations, t0: float, t1: float, previous: dict[int, TargetSolution] | None
+    ) -> Estimate:
+        """The window's one core call (on the worker thread)."""
         ids = None if self.target_id < 0 else [self.target_id]
+        cfg = self._window_config(obs)
+        if self.model != 'spline':
+            return dynamics_window(
+                obs,
+                t0,
+                t1,
+                self.model,
+                ids,
+                cfg.biases,
+                RocketConfig.for_frame(self.world_frame, stages=self.stages),
+            )
+        return estimate(obs, t0, t1, cfg, ids, previous)
+
+    def _finish(self, job: Job) -> bool:
+        """Publish a solved window (or count its failure); whether it was published."""
+        span, tb, obs, withheld = job.context
+        t0, t1 = span
+        wall = job.started
         try:
-            cfg = self._window_config(obs)
-            if self.model != 'spline':
-                est = dynamics_window(
-                    obs,
-                    t0,
-                    t1,
-                    self.model,
-                    ids,
-                    cfg.biases,
-                    RocketConfig.for_frame(self.world_frame, stages=self.stages),
-                )
-            else:
-                est = estimate(obs, t0, t1, cfg, ids, self.previous or None)
+            est = job.future.result()
             if not est.success:  # inconsistent or not converged: withheld, never final
                 return self._failed(span, wall, f'not published: {est.message}', withheld)
             self._publish_window(est, tb)
@@ -690,7 +724,7 @@ class EstimatorNode(StationInputs):
         except OrbitTrackingError as exc:
             return self._failed(span, wall, f'{type(exc).__name__}: {exc}', withheld)
         except Exception as exc:  # a bug in one window must not take the node down
-            self.get_logger().error(traceback.format_exc())
+            self.get_logger().error(''.join(traceback.format_exception(exc)))
             return self._failed(
                 span, wall, f'internal error {type(exc).__name__}: {exc}', withheld
             )
@@ -816,6 +850,14 @@ class EstimatorNode(StationInputs):
         self.counts[key] += n
         self.get_logger().warning(f'{text} ({self.counts[key]} so far)', throttle_duration_sec=5.0)
 
+    def _solving_text(self) -> str:
+        """The window on the worker and for how long, or '' when it is idle."""
+        job = self.worker.job
+        if job is None:
+            return ''
+        (t0, t1), *_ = job.context
+        return f'[{t0:.2f}, {t1:.2f}] s for {job.running_s:.1f} s'
+
     def _publish_diagnostics(self) -> None:
         counts = Counter(self.buffer.counts)
         counts.update(self.counts)
@@ -827,6 +869,7 @@ class EstimatorNode(StationInputs):
             'windows_failed': failed,
             **{k: v for k, v in sorted(counts.items()) if not k.startswith('windows_')},
             **self.last,
+            'solving_window': self._solving_text(),
             'newest_data_time_s': self.buffer.latest_time(),
             'time_reference_s': ''
             if self.timebase is None

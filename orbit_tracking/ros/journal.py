@@ -232,7 +232,9 @@ class EstimatorJournal:
         s = node.scheduler
         key = (s.last, s.next_t0, node.residuals_after)
         try:
-            if key != self._saved and s.last is not None:
+            if node.worker.busy:  # the scheduler moved on to a window not published yet
+                j.sync()
+            elif key != self._saved and s.last is not None:
                 if not node.window_pub.wait_for_all_acked(_NO_ACK):
                     j.sync()
                     return  # the window may not be out yet: try again next period
