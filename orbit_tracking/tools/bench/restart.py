@@ -30,6 +30,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -151,8 +152,9 @@ def run_pass(
         window is solved again after the restart.
     max_gap : float, optional
         With ``kill_node='estimator'``: most data seconds the player runs on while no
-        estimator runs. Once the data reach the kill's data time plus this, the player is
-        paused (SIGSTOP) until the restarted estimator publishes its first status (it has
+        estimator runs. Once the data heard here reach the kill's data time plus this, or
+        ``max_gap / rate`` wall seconds after the kill (whichever comes first: what this
+        process hears lags under load), the player is paused (SIGSTOP) until the restarted estimator publishes its first status (it has
         subscribed by then), then resumed (SIGCONT), so the data the estimator misses do not
         grow with the machine's load. None: the player never waits.
     kill_signal : int
@@ -337,18 +339,31 @@ def run_pass(
                 f'{out.kill_data_s:.2f} s, after {len(windows)} window(s)'
             )
             paused = [False]
+            resumed = [False]
+            pause_lock = threading.Lock()
+
+            def pause() -> None:
+                """SIGSTOP the player once (not after it was resumed)."""
+                with pause_lock:
+                    if not (paused[0] or resumed[0]) and procs['replay'].poll() is None:
+                        procs['replay'].send_signal(signal.SIGSTOP)
+                        paused[0] = True
+
+            # The data this process hears lag behind what the player sent when it is short
+            # of CPU; the player cannot have sent more than max_gap / rate wall seconds of
+            # data beyond the kill, so a timer pauses it then at the latest.
+            timer = None
+            if max_gap is not None:
+                timer = threading.Timer(max_gap / rate, pause)
+                timer.daemon = True
+                timer.start()
 
             def hold(pred: Callable[[], bool]) -> Callable[[], bool]:
                 """``pred``, pausing the player once the data pass ``max_gap``."""
 
                 def check() -> bool:
-                    if (
-                        max_gap is not None
-                        and not paused[0]
-                        and data_now[0] >= out.kill_data_s + max_gap
-                    ):
-                        procs['replay'].send_signal(signal.SIGSTOP)
-                        paused[0] = True
+                    if max_gap is not None and data_now[0] >= out.kill_data_s + max_gap:
+                        pause()
                     return pred()
 
                 return check
@@ -369,8 +384,13 @@ def run_pass(
                     60,
                     'the first status of the restarted estimator',
                 )
+            if timer is not None:
+                timer.cancel()
+            with pause_lock:
+                resumed[0] = True
+                if paused[0]:
+                    procs['replay'].send_signal(signal.SIGCONT)
             if paused[0]:
-                procs['replay'].send_signal(signal.SIGCONT)
                 out.paused_data_s = data_now[0]
                 say(f'the player waited at data time {out.paused_data_s:.2f} s')
             if kill_node == 'estimator':
