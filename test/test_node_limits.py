@@ -5,6 +5,8 @@ exception inside a callback. The same classes over real DDS are in test_faults.p
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import pytest
 from conftest import default_context
@@ -156,14 +158,20 @@ def test_the_estimator_solves_a_bounded_number_of_windows_per_call():
         node = mod.EstimatorNode()
         try:
             solved: list = []
-            node._solve = lambda span, tb: solved.append(span) or True
+            gate = threading.Event()
+            node._core = lambda obs, t0, t1, previous: gate.wait(10.0)  # the worker's call
+            node._finish = lambda job: solved.append(job.context[0]) or True
             for k in range(60):
                 node._on_measurements(_ranges(1, t=0.5 * k), 'cw01')
             node.flushed = False
-            first = node._solve_due(final=True)
-            assert len(first) == mod._MAX_WINDOWS_PER_CALL
-            rest = node._solve_due(final=True)
+            # the timer's call hands one window to the worker and returns while it runs
+            assert node._solve_due(final=True) == [] and node.worker.busy
+            gate.set()
+            first = node._solve_due(final=True, block=True)
+            assert len(first) == mod._MAX_WINDOWS_PER_CALL and not node.worker.busy
+            rest = node._solve_due(final=True, block=True)
             assert 0 < len(rest) <= mod._MAX_WINDOWS_PER_CALL
+            assert [s for s, _ in first + rest] == solved
             assert all(b[1] > a[1] for a, b in zip(solved, solved[1:], strict=False))
         finally:
             node.destroy_node()

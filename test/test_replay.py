@@ -125,7 +125,7 @@ def test_estimator_node_solves_the_held_window_and_starts_anew_when_time_goes_ba
                     _feed(node, ev, msg)
                     if i % 50 == 0:
                         node._solve_due(final=False)  # the node's timer
-            node._solve_due(final=True)  # the end of the stream
+            node._solve_due(final=True, block=True)  # the end of the stream
             assert node.counts['time_resets'] == 1
         finally:
             node.destroy_node()
@@ -508,7 +508,7 @@ def test_estimator_windows_wait_for_a_late_station(tmp_path):
     others = [e for e in events if not (e[0].kind == 'measurement' and e[0].key == 'sat09')]
     with default_context(window_length=10.0, window_overlap=2.0):
         node = EstimatorNode()
-        node._solve_due = lambda final: []  # the horizon only; no solve
+        node._solve_due = lambda final, block=False: []  # the horizon only; no solve
         try:
             i = 0
             for ev, msg in others:
@@ -537,7 +537,7 @@ def test_estimator_without_telemetry_waits_for_the_first_fix(tmp_path):
     events = _events(tmp_path / 'q2.yaml')
     with default_context(window_length=10.0, window_overlap=2.0):
         node = EstimatorNode()
-        node._solve_due = lambda final: []  # the horizon only; no solve
+        node._solve_due = lambda final, block=False: []  # the horizon only; no solve
         other = rclpy.create_node('fake_triangulation')
         try:
             for ev, msg in events:

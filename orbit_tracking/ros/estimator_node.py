@@ -53,7 +53,7 @@ from orbit_tracking.core.errors import OrbitTrackingError
 from orbit_tracking.core.estimation.bias_files import load_bias_declaration, station_fields
 from orbit_tracking.core.estimation.config import KNOT_METHODS, EstimatorConfig
 from orbit_tracking.core.estimation.estimator import estimate
-from orbit_tracking.core.estimation.knots import KnotConfig
+from orbit_tracking.core.estimation.knots import KnotConfig, load_solver
 from orbit_tracking.core.estimation.residuals import window_residual_stats
 from orbit_tracking.core.estimation.results import Estimate, TargetSolution
 from orbit_tracking.core.estimation.windows import (
@@ -486,7 +486,16 @@ class EstimatorNode(StationInputs):
         )
         self.create_service(Trigger, '~/solve', self._on_solve)
         self._start_station_inputs(station_filter, self.time_reference)
-        self.worker = SolveWorker(self, lambda: self._guarded('tick', self._tick))
+        self.worker = SolveWorker(
+            self,
+            lambda: self._guarded('tick', self._tick),
+            # cvxpy and the LP solver loaded while the first window's data come in
+            prepare=lambda: (
+                load_solver(self.est_cfg.knots.solver)
+                if self.model == 'spline' and self.est_cfg.knot_method == 'sparse'
+                else None
+            ),
+        )
         self.create_timer(0.2, lambda: self._guarded('tick', self._tick))
         self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info(

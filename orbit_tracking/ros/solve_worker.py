@@ -46,10 +46,18 @@ class Job:
 
 class SolveWorker:
     """A daemon thread running one job at a time; ``on_done`` is called on the node's
-    executor when a job has finished (take it with :meth:`take`)."""
+    executor when a job has finished (take it with :meth:`take`). ``prepare`` runs on the
+    thread first (imports and solver start-up the first job would otherwise pay)."""
 
-    def __init__(self, node: Node, on_done: Callable[[], None]) -> None:
+    def __init__(
+        self,
+        node: Node,
+        on_done: Callable[[], None],
+        prepare: Callable[[], object] | None = None,
+    ) -> None:
         self._guard = node.create_guard_condition(on_done)
+        self._prepare = prepare
+        self._logger = node.get_logger()
         self._tasks: queue.SimpleQueue[tuple[Future[Any], Callable[[], Any]] | None] = (
             queue.SimpleQueue()
         )
@@ -91,6 +99,11 @@ class SolveWorker:
         self._tasks.put(None)
 
     def _run(self) -> None:
+        if self._prepare is not None:  # jobs handed over meanwhile wait in the queue
+            try:
+                self._prepare()
+            except Exception as exc:  # the first job meets the same failure and reports it
+                self._logger.warning(f'solve worker: preparing failed ({exc!r})')
         while True:
             task = self._tasks.get()
             if task is None:

@@ -48,6 +48,7 @@ __all__ = [
     'densify',
     'detect_events',
     'dynamics_knots',
+    'load_solver',
     'rough_trajectory',
     'select_knots',
     'selection_span',
@@ -543,6 +544,17 @@ def _midpoints(
     lo, hi, sc = lo[ok], hi[ok], sc[ok]
     del events
     return (0.5 * (lo + hi))[np.argsort(-sc, kind='stable')]
+
+
+def load_solver(solver: str = 'HIGHS') -> None:
+    """Import cvxpy and solve a two-variable LP of the knot selection's shape with
+    ``solver``: what a process's first knot selection would otherwise pay (a second, more
+    under load), paid ahead of it (the estimator node does it on its worker at start)."""
+    import cvxpy as cp
+
+    x = cp.Variable(2)
+    prob = cp.Problem(cp.Minimize(cp.norm1(x - 1.0)), [cp.abs(x) <= 2.0])
+    prob.solve(solver=solver.upper())  # type: ignore[no-untyped-call]
 
 
 def select_knots(
