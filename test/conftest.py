@@ -33,13 +33,14 @@ def _isolate_dds() -> None:
     os.environ['RMW_IMPLEMENTATION'] = 'rmw_fastrtps_cpp'
     if not os.environ.get('ROS_DOMAIN_ID'):
         os.environ['ROS_DOMAIN_ID'] = str(1 + os.getpid() % 100)
-    # pytest-xdist workers inherit the controller's domain and must not share it: worker k
-    # takes the domain 50 k further (in 1..100; the fault suite's second lane uses the
-    # domain after its own, so two workers never meet)
+    # pytest-xdist workers inherit the controller's domain and must not share it: of n
+    # workers, worker k takes the domain k * (100 // n) further (in 1..100; the fault
+    # suite's second lane uses the domain after its own, so two workers never meet)
     worker = os.environ.get('PYTEST_XDIST_WORKER', '')
     if worker.startswith('gw') and worker[2:].isdigit():
         base = int(os.environ['ROS_DOMAIN_ID'])
-        os.environ['ROS_DOMAIN_ID'] = str((base - 1 + 50 * int(worker[2:])) % 100 + 1)
+        step = 100 // max(2, int(os.environ.get('PYTEST_XDIST_WORKER_COUNT', '2')))
+        os.environ['ROS_DOMAIN_ID'] = str((base - 1 + step * int(worker[2:])) % 100 + 1)
 
 
 _isolate_dds()
