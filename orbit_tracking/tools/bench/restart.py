@@ -11,10 +11,10 @@ command line ``restart_after`` seconds later. :func:`measure_restart_loss` compa
 ``trajectory/states`` the two passes published (:func:`~orbit_tracking.tools.bench.
 restart_compare.compare_passes`).
 
-The estimator solves the end of the stream when the bench asks for it (``~/solve``, once the
-replay has ended and the estimator holds its last measurement), not after a silence, so
-that the player may be paused (SIGSTOP) without the pause being taken for the end: it is
-paused from ``kill_at`` until the kill, and again while no estimator runs (``max_gap``).
+Before an estimator kill the player is paused (SIGSTOP) from ``kill_at`` until the kill, and
+again while no estimator runs (``max_gap``); the estimator's ``flush_after`` is raised to
+:data:`ESTIMATOR_FLUSH_S` in every pass so that the first pause is not taken for the end of
+the stream.
 
 Messages the player sends while no estimator process runs reach no estimator: with the
 journal the restarted node has everything it had accepted before the kill, and the windows
@@ -66,14 +66,9 @@ RESTART_WINDOWS: Mapping[str, object] = {
 }
 """The estimator's windows: four over 30 s, three hand-overs (as the regression test)."""
 
-_TRIANGULATION_FLUSH_S = 2.0
-"""The triangulation node's ``flush_after`` (config/triangulation.yaml): it fixes the
-epochs it holds this long after the data stop."""
-
-_TAIL_QUIET_S = _TRIANGULATION_FLUSH_S + 2.0
-"""Wall seconds the triangulation node's fix count must stand still after the replay
-before the estimator is asked for the end of the stream (as its own ``flush_after`` of
-4 s waited for those fixes before)."""
+ESTIMATOR_FLUSH_S = 15.0
+"""The estimator's ``flush_after`` in every pass (4 s in config/estimator.yaml): above the
+player's pause before an estimator kill."""
 
 _PROCESSING = ('triangulation', 'estimator', 'results')
 _OUTPUT_TOPIC = {
@@ -158,10 +153,10 @@ def run_pass(
         here, and start it again ``restart_after`` seconds later; None: a clean pass.
     kill_at : float, optional
         Wait, before the delay, until the newest measurement received here is at least
-        this data time [s after the bag's epoch] as well; the player is paused from then
-        until the kill (the windows, the checkpoint and the delay are waited for with the
-        data held there, so a slow solve under load does not move the kill towards the end
-        of the bag).
+        this data time [s after the bag's epoch] as well; before an estimator kill the
+        player is paused from then until the kill (the windows, the checkpoint and the
+        delay are waited for with the data held there, so a slow solve under load does not
+        move the kill towards the end of the bag).
     kill_after_checkpoint : bool
         Wait, before the delay, until the estimator's journal holds the checkpoint of the
         last of those windows (it is written once the readers acknowledged the window):
@@ -224,12 +219,12 @@ def run_pass(
     ref = {'time_reference': tb.ref_ns * 1e-9}
     overrides: dict[str, dict[str, object]] = {
         'triangulation': dict(ref),
-        # the end of the stream is asked for (~/solve), so that the player's pauses below
-        # are not taken for it
+        # the player's pause before an estimator kill (kill_at) must not look like the end
+        # of the stream: it lasts as long as the window solve under load, a few seconds
         'estimator': {
             **ref,
             **RESTART_WINDOWS,
-            'flush_after': 3600.0,
+            'flush_after': ESTIMATOR_FLUSH_S,
             # no journal: the file's '' (an empty -p value does not parse)
             **({'journal_dir': str(work / 'journal')} if journal else {}),
             **(estimator_params or {}),
@@ -254,7 +249,6 @@ def run_pass(
     windows: list[Any] = []
     results: dict[str, str] = {}
     estimator: dict[str, str] = {}
-    tri: dict[str, str] = {}
     estimator_heard_ns = [0]  # header stamp (system time) of the estimator's newest status
     data_now = [-math.inf]
 
@@ -263,9 +257,6 @@ def run_pass(
             if st.name == 'results: trajectory':
                 results.clear()
                 results.update({kv.key: kv.value for kv in st.values})
-            elif st.name == 'triangulation: fixes':
-                tri.clear()
-                tri.update({kv.key: kv.value for kv in st.values})
             elif st.name == 'estimator: windows':
                 estimator_heard_ns[0] = max(estimator_heard_ns[0], stamp_ns(msg.header.stamp))
                 estimator.clear()
@@ -339,6 +330,7 @@ def run_pass(
                     max(deadline - time.monotonic(), 1.0),
                     f'data time {kill_at:g} s before the kill',
                 )
+            if kill_at is not None and kill_node == 'estimator':
                 # the data wait here for the kill, however slow the window solves are under
                 # load (else the kill, and the restart, can come after the end of the bag)
                 procs['replay'].send_signal(signal.SIGSTOP)
@@ -441,32 +433,6 @@ def run_pass(
                 f'{kill_node} back {out.restart_wall_s:.1f} s after the kill, at data time '
                 f'{out.ready_data_s:.2f} s'
             )
-        fixes_seen = [time.monotonic(), '']
-
-        def tail_in() -> bool:
-            """The replay ended, the estimator holds the newest measurement, and the
-            triangulation node's fix count has stood still for :data:`_TAIL_QUIET_S` (its
-            flush of the epochs it held, :data:`_TRIANGULATION_FLUSH_S` after the data
-            stopped, has reached the estimator)."""
-            if tri.get('fixes', '') != fixes_seen[1]:
-                fixes_seen[:] = [time.monotonic(), tri.get('fixes', '')]
-            return (
-                procs['replay'].poll() is not None
-                and float(estimator.get('newest_data_time_s', '-inf')) >= newest - 1e-6
-                and time.monotonic() - fixes_seen[0] > _TAIL_QUIET_S
-            )
-
-        spin_until(
-            tail_in,
-            max(deadline - time.monotonic(), 1.0),
-            f'the replay to end, the estimator to have data up to {newest:.3f} s and the '
-            'triangulation node to fix its held epochs',
-        )
-        solve = node.create_client(Trigger, '/estimator/solve')
-        if not solve.wait_for_service(timeout_sec=20.0):
-            raise RuntimeError('the estimator offers no ~/solve')
-        asked = solve.call_async(Trigger.Request())
-        spin_until(asked.done, 60, 'the estimator ~/solve response')
         last_end = [-math.inf]
 
         def ended() -> bool:
