@@ -177,6 +177,28 @@ def test_the_estimator_solves_a_bounded_number_of_windows_per_call():
             node.destroy_node()
 
 
+def test_without_the_background_worker_the_timer_waits_for_its_solves():
+    """``solve_in_background: false``: the timer's call solves (up to the bound) before it
+    returns, as a node without the worker did."""
+    from orbit_tracking.ros import estimator_node as mod
+
+    params = {'window_length': 1.0, 'window_overlap': 0.0, 'solve_in_background': False}
+    with default_context(time_reference=EPOCH_NS * 1e-9, **params):
+        node = mod.EstimatorNode()
+        try:
+            solved: list = []
+            node._core = lambda obs, t0, t1, previous: None
+            node._finish = lambda job: solved.append(job.context[0]) or True
+            for k in range(60):
+                node._on_measurements(_ranges(1, t=0.5 * k), 'cw01')
+            node.flushed = False
+            first = node._solve_due(final=True)
+            assert len(first) == mod._MAX_WINDOWS_PER_CALL and not node.worker.busy
+            assert [s for s, _ in first] == solved
+        finally:
+            node.destroy_node()
+
+
 def test_the_results_node_publishes_at_most_max_targets_targets():
     from orbit_tracking.ros.results_node import ResultsNode
 

@@ -432,6 +432,16 @@ class EstimatorNode(StationInputs):
             min_value=0.1,
             max_value=3600.0,
         )
+        self.background = declare(
+            self,
+            'solve_in_background',
+            True,
+            'Solve windows on a worker thread, so that messages, services and /diagnostics '
+            'go on during a solve (the solve then shares the interpreter with the intake and '
+            'takes longer under a heavy stream); false: the intake waits while a window is '
+            'solved (messages queue in the middleware), for the lowest window latency.',
+            read_only=True,
+        )
         self.target_id = declare(
             self,
             'target_id',
@@ -608,6 +618,9 @@ class EstimatorNode(StationInputs):
         """On the timer and whenever the worker finished a solve: publish it, start the
         next due window; at the end of the stream (silence) every window there is."""
         spans = self._solve_due(final=False)
+        if spans and not self.background:
+            # messages waited in the queues while we solved: that was not silence
+            self.last_data = time.monotonic()
         if self.flushed or not self._silent():
             return
         last = self._solve_due(final=True)
@@ -647,6 +660,7 @@ class EstimatorNode(StationInputs):
         if self.timebase is None:
             return out
         latest = self.buffer.latest_time() if final else self._horizon()
+        block = block or not self.background
         while len(out) < _MAX_WINDOWS_PER_CALL:
             with self._working() if block else contextlib.nullcontext():
                 job = self.worker.take(block)
