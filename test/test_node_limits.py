@@ -154,7 +154,8 @@ def test_the_estimator_solves_a_bounded_number_of_windows_per_call():
     number, so that timers, services and Ctrl-C are served in between."""
     from orbit_tracking.ros import estimator_node as mod
 
-    with default_context(time_reference=EPOCH_NS * 1e-9, window_length=1.0, window_overlap=0.0):
+    params = {'window_length': 1.0, 'window_overlap': 0.0, 'solve_in_background': True}
+    with default_context(time_reference=EPOCH_NS * 1e-9, **params):
         node = mod.EstimatorNode()
         try:
             solved: list = []

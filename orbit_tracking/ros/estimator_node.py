@@ -435,7 +435,7 @@ class EstimatorNode(StationInputs):
         self.background = declare(
             self,
             'solve_in_background',
-            True,
+            False,
             'Solve windows on a worker thread, so that messages, services and /diagnostics '
             'go on during a solve (the solve then shares the interpreter with the intake and '
             'takes longer under a heavy stream); false: the intake waits while a window is '

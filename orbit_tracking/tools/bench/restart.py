@@ -11,10 +11,8 @@ command line ``restart_after`` seconds later. :func:`measure_restart_loss` compa
 ``trajectory/states`` the two passes published (:func:`~orbit_tracking.tools.bench.
 restart_compare.compare_passes`).
 
-Before an estimator kill the player is paused (SIGSTOP) from ``kill_at`` until the kill, and
-again while no estimator runs (``max_gap``); the estimator's ``flush_after`` is raised to
-:data:`ESTIMATOR_FLUSH_S` in every pass so that the first pause is not taken for the end of
-the stream.
+Before an estimator kill the player is paused from ``kill_at`` until the kill and while no
+estimator runs (``max_gap``); the estimator's ``flush_after`` is :data:`ESTIMATOR_FLUSH_S`.
 
 Messages the player sends while no estimator process runs reach no estimator: with the
 journal the restarted node has everything it had accepted before the kill, and the windows
@@ -67,8 +65,7 @@ RESTART_WINDOWS: Mapping[str, object] = {
 """The estimator's windows: four over 30 s, three hand-overs (as the regression test)."""
 
 ESTIMATOR_FLUSH_S = 15.0
-"""The estimator's ``flush_after`` in every pass (4 s in config/estimator.yaml): above the
-player's pause before an estimator kill."""
+"""The estimator's ``flush_after`` in every pass: above the pause before an estimator kill."""
 
 _PROCESSING = ('triangulation', 'estimator', 'results')
 _OUTPUT_TOPIC = {
@@ -107,6 +104,15 @@ def _checkpointed(journal_dir: Path, t1: float) -> bool:
         if last is not None and last[1] >= t1 - 1e-9:
             return True
     return False
+
+
+def _readers(node: Any, topic: str, node_name: str) -> set[bytes]:
+    """Endpoint ids of ``node_name``'s readers of ``topic`` on the ROS graph."""
+    return {
+        bytes(i.endpoint_gid)
+        for i in node.get_subscriptions_info_by_topic(topic)
+        if i.node_name == node_name
+    }
 
 
 def _start(cmd: Sequence[str], log: Path, env: Mapping[str, str]) -> subprocess.Popen[bytes]:
@@ -154,9 +160,7 @@ def run_pass(
     kill_at : float, optional
         Wait, before the delay, until the newest measurement received here is at least
         this data time [s after the bag's epoch] as well; before an estimator kill the
-        player is paused from then until the kill (the windows, the checkpoint and the
-        delay are waited for with the data held there, so a slow solve under load does not
-        move the kill towards the end of the bag).
+        player waits there until the kill (a slow solve must not push it past the bag).
     kill_after_checkpoint : bool
         Wait, before the delay, until the estimator's journal holds the checkpoint of the
         last of those windows (it is written once the readers acknowledged the window):
@@ -219,8 +223,7 @@ def run_pass(
     ref = {'time_reference': tb.ref_ns * 1e-9}
     overrides: dict[str, dict[str, object]] = {
         'triangulation': dict(ref),
-        # the player's pause before an estimator kill (kill_at) must not look like the end
-        # of the stream: it lasts as long as the window solve under load, a few seconds
+        # the pause before an estimator kill (kill_at) must not look like the stream's end
         'estimator': {
             **ref,
             **RESTART_WINDOWS,
@@ -350,6 +353,7 @@ def run_pass(
             end = time.monotonic() + kill_delay
             spin_until(lambda: time.monotonic() >= end, kill_delay + 1.0, 'the kill delay')
             out.windows_before_kill = len(windows)
+            old_readers = _readers(node, probe_topic, kill_node)
             procs[kill_node].send_signal(kill_signal)
             procs[kill_node].wait(10)
             if held:
@@ -362,6 +366,11 @@ def run_pass(
                 f'{kill_node} killed ({signal.Signals(kill_signal).name}) at data time '
                 f'{out.kill_data_s:.2f} s, after {len(windows)} window(s)'
             )
+
+            def new_reader() -> bool:  # what the player sends before it matched the new
+                # reader is lost to it (seconds under load); seen here is the proxy for that
+                return bool(_readers(node, probe_topic, kill_node) - old_readers)
+
             paused = [False]
             resumed = [False]
             pause_lock = threading.Lock()
@@ -404,9 +413,9 @@ def run_pass(
             )
             if max_gap is not None:  # the player resumes once the new estimator is up
                 spin_until(
-                    hold(lambda: estimator_heard_ns[0] > killed_ns),
+                    hold(lambda: estimator_heard_ns[0] > killed_ns and new_reader()),
                     60,
-                    'the first status of the restarted estimator',
+                    f'the restarted estimator: its first status and reader of {probe_topic}',
                 )
             if timer is not None:
                 timer.cancel()
