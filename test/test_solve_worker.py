@@ -56,4 +56,3 @@ def test_an_exception_comes_back_with_its_job_and_the_worker_goes_on(rclpy_node)
     worker.submit('good', lambda: 42)
     job = worker.take(block=True)
     assert job is not None and job.future.result() == 42 and job.running_s >= 0.0
-    worker.stop()

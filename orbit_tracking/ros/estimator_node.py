@@ -22,9 +22,10 @@ Example::
 
     ros2 run orbit_tracking estimator --ros-args -p window_length:=60.0 -p latency:=2.0
 
-The module is a little over the project's ~600-line guide: about 220 lines of it are the
-node's parameter declarations (each with its description and range); the estimation itself
-is one call into :func:`orbit_tracking.core.estimation.estimator.estimate` (with
+The module is over the project's ~600-line guide: about 230 lines of it are the node's
+parameter declarations (each with its description and range). What the node publishes for a
+solved or failed window is in :mod:`orbit_tracking.ros.estimator_outputs`; the estimation
+itself is one call into :func:`orbit_tracking.core.estimation.estimator.estimate` (with
 ``model: rocket`` or ``adjoint``,
 :func:`orbit_tracking.core.dynamics.solve.dynamics_window`).
 """
@@ -34,7 +35,6 @@ from __future__ import annotations
 import contextlib
 import math
 import time
-import traceback
 from collections import Counter
 from dataclasses import replace
 
@@ -49,18 +49,15 @@ from std_srvs.srv import Trigger
 from orbit_tracking.core.data.buffer import ObservationBuffer
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.dynamics.solve import RocketConfig, dynamics_window
-from orbit_tracking.core.errors import OrbitTrackingError
 from orbit_tracking.core.estimation.bias_files import load_bias_declaration, station_fields
 from orbit_tracking.core.estimation.config import KNOT_METHODS, EstimatorConfig
 from orbit_tracking.core.estimation.estimator import estimate
 from orbit_tracking.core.estimation.knots import KnotConfig, load_solver
-from orbit_tracking.core.estimation.residuals import window_residual_stats
 from orbit_tracking.core.estimation.results import Estimate, TargetSolution
 from orbit_tracking.core.estimation.windows import (
     Span,
     WindowConfig,
     WindowScheduler,
-    output_times,
 )
 from orbit_tracking.core.time import format_stamp
 from orbit_tracking.ros import qos
@@ -69,18 +66,16 @@ from orbit_tracking.ros.conversions import (
     StationStateSample,
     TargetStateSample,
     TimeBase,
-    biases_to_diagnostics,
     diagnostic_array,
     diagnostic_status,
     msg_to_fix,
     odometry_to_target_state,
-    window_residuals_to_msg,
-    window_states_to_cloud,
 )
+from orbit_tracking.ros.estimator_outputs import WindowOutputs
 from orbit_tracking.ros.journal import EstimatorJournal
 from orbit_tracking.ros.parameters import declare
 from orbit_tracking.ros.runner import run_node
-from orbit_tracking.ros.solve_worker import Job, SolveWorker
+from orbit_tracking.ros.solve_worker import SolveWorker
 from orbit_tracking.ros.station_inputs import StationInputs
 
 MODELS = ('spline', 'rocket', 'adjoint')
@@ -105,7 +100,7 @@ def _segments(flat: list[float]) -> tuple[tuple[float, float], ...]:
     return tuple((float(flat[i]), float(flat[i + 1])) for i in range(0, len(flat), 2))
 
 
-class EstimatorNode(StationInputs):
+class EstimatorNode(WindowOutputs, StationInputs):
     def __init__(self) -> None:
         super().__init__('estimator')
         station_filter = self._declare_station_filter()
@@ -732,124 +727,6 @@ class EstimatorNode(StationInputs):
             )
         return estimate(obs, t0, t1, cfg, ids, previous)
 
-    def _finish(self, job: Job) -> bool:
-        """Publish a solved window (or count its failure); whether it was published."""
-        span, tb, obs, withheld = job.context
-        t0, t1 = span
-        wall = job.started
-        try:
-            est = job.future.result()
-            if not est.success:  # inconsistent or not converged: withheld, never final
-                return self._failed(span, wall, f'not published: {est.message}', withheld)
-            self._publish_window(est, tb)
-            self._publish_biases(est, tb)
-            self._publish_residuals(est, obs, tb)
-        except OrbitTrackingError as exc:
-            return self._failed(span, wall, f'{type(exc).__name__}: {exc}', withheld)
-        except Exception as exc:  # a bug in one window must not take the node down
-            self.get_logger().error(''.join(traceback.format_exception(exc)))
-            return self._failed(
-                span, wall, f'internal error {type(exc).__name__}: {exc}', withheld
-            )
-        dt = time.monotonic() - wall
-        if self.model == 'spline':  # a rocket flight cannot seed the next window's spline
-            self.previous = dict(est.targets)
-        self.counts['windows_solved'] += 1
-        self._remember(span, est, dt, withheld)
-        used = sum(v for k, v in est.used.items() if not k.startswith('telemetry_'))
-        rejected = sum(est.rejected.values())
-        text = (
-            f'window [{t0:.2f}, {t1:.2f}] s (stamps {tb.to_ns(t0) * 1e-9:.2f}-'
-            f'{tb.to_ns(t1) * 1e-9:.2f}): {est.message}; {est.iterations} GN iterations, '
-            f'chi2/dof {est.chi2_dof:.3f}, {used} measured values used, {rejected} rejected'
-            + (f', {sum(withheld.values())} rows without station state' if withheld else '')
-            + f', {est.n_parameters} parameters; solved in {dt:.2f} s '
-            f'(knots {est.knot_time:.2f} s, Gauss-Newton {est.solve_time:.2f} s)'
-        )
-        self.get_logger().info(text)
-        return True
-
-    def _failed(self, span: Span, wall: float, reason: str, withheld: Counter[str]) -> bool:
-        self.counts['windows_failed'] += 1
-        self.last_ok = False
-        self.last = {
-            'last_window_start': span[0],
-            'last_window_end': span[1],
-            'last_window_status': f'failed: {reason}',
-            'last_solve_wall_s': time.monotonic() - wall,
-            **{f'withheld_no_station_state_{s}': n for s, n in sorted(withheld.items())},
-        }
-        self.get_logger().error(
-            f'window [{span[0]:.2f}, {span[1]:.2f}] s failed ({reason}); '
-            f'{self.counts["windows_failed"]} failed so far'
-        )
-        return False
-
-    def _remember(self, span: Span, est: Estimate, dt: float, withheld: Counter[str]) -> None:
-        self.last_ok = est.success
-        self.last = {
-            'last_window_start': span[0],
-            'last_window_end': span[1],
-            'last_window_status': est.message,
-            'last_iterations': est.iterations,
-            'last_halvings': est.halvings,
-            'last_chi2_dof': est.chi2_dof,
-            'last_condition': est.condition,
-            'last_parameters': est.n_parameters,
-            'last_solve_wall_s': dt,
-            'last_knot_time_s': est.knot_time,
-            'last_gauss_newton_time_s': est.solve_time,
-            **{f'used_{s}': n for s, n in sorted(est.used.items())},
-            **{f'rejected_{s}_{why}': n for (s, why), n in sorted(est.rejected.items())},
-            **{f'withheld_no_station_state_{s}': n for s, n in sorted(withheld.items())},
-        }
-
-    def _publish_window(self, est: Estimate, tb: TimeBase) -> None:
-        times, tids, states, covs = [], [], [], []
-        for tid, sol in sorted(est.targets.items()):
-            t = output_times(max(est.t0, sol.t0), min(est.t1, sol.t1), self.win_cfg.output_step)
-            if t.size == 0:
-                continue
-            x, c = sol.states(t)
-            var = np.diagonal(c, axis1=1, axis2=2)
-            if not (np.all(np.isfinite(x)) and np.all(np.isfinite(c)) and np.all(var >= 0.0)):
-                raise OrbitTrackingError(
-                    f'target {tid}: the solution has non-finite states or negative variances '
-                    f'(smallest {np.nanmin(var):.3g}): not published'
-                )
-            times.append(t)
-            tids.append(np.full(t.size, tid, dtype=np.uint32))
-            states.append(x)
-            covs.append(c)
-        if not times:
-            raise OrbitTrackingError('window holds no output time')
-        self.window_pub.publish(
-            window_states_to_cloud(
-                self.world_frame or 'earth',
-                est.t0,
-                np.concatenate(times),
-                np.concatenate(tids),
-                np.vstack(states),
-                np.concatenate(covs),
-                tb,
-                t1=est.t1,
-            )
-        )
-
-    def _publish_residuals(self, est: Estimate, obs: Observations, tb: TimeBase) -> None:
-        """``estimator/window_residuals``: per-station whitened-residual statistics of the
-        rows after the previous window's end (so that summing windows counts each
-        measurement once); never fails the window."""
-        after = self.residuals_after
-        if after is not None and not est.t0 < after < est.t1:
-            after = None  # no overlap (a pause), or time went back
-        try:
-            stats = window_residual_stats(est, obs, after)
-            self.residual_pub.publish(window_residuals_to_msg(stats, est.t0, est.t1, after, tb))
-        except Exception as exc:  # statistics are a report: the window stands without them
-            self._reject('residuals_failed', f'window residuals not published: {exc!r}')
-        self.residuals_after = est.t1
-
     # -- biases --------------------------------------------------------------------
     def _window_config(self, obs: Observations) -> EstimatorConfig:
         """The estimator settings of one window: the bias declaration resolved against the
@@ -863,23 +740,10 @@ class EstimatorNode(StationInputs):
                 self.get_logger().warning(note)
         return replace(self.est_cfg, biases=biases)
 
-    def _publish_biases(self, est: Estimate, tb: TimeBase) -> None:
-        """``trajectory/biases`` (transient local): the window's station biases, if any."""
-        if est.biases:
-            self.bias_pub.publish(biases_to_diagnostics(est.biases, est.t0, est.t1, tb))
-
     # -- diagnostics ---------------------------------------------------------------
     def _reject(self, key: str, text: str, n: int = 1) -> None:
         self.counts[key] += n
         self.get_logger().warning(f'{text} ({self.counts[key]} so far)', throttle_duration_sec=5.0)
-
-    def _solving_text(self) -> str:
-        """The window on the worker and for how long, or '' when it is idle."""
-        job = self.worker.job
-        if job is None:
-            return ''
-        (t0, t1), *_ = job.context
-        return f'[{t0:.2f}, {t1:.2f}] s for {job.running_s:.1f} s'
 
     def _publish_diagnostics(self) -> None:
         counts = Counter(self.buffer.counts)

@@ -58,9 +58,7 @@ class SolveWorker:
         self._guard = node.create_guard_condition(on_done)
         self._prepare = prepare
         self._logger = node.get_logger()
-        self._tasks: queue.SimpleQueue[tuple[Future[Any], Callable[[], Any]] | None] = (
-            queue.SimpleQueue()
-        )
+        self._tasks: queue.SimpleQueue[tuple[Future[Any], Callable[[], Any]]] = queue.SimpleQueue()
         self.job: Job | None = None
         self._thread = threading.Thread(
             target=self._run, name=f'{node.get_name()}_solve', daemon=True
@@ -93,11 +91,6 @@ class SolveWorker:
         self.job = None
         return job
 
-    def stop(self) -> None:
-        """Let the thread end after the job it runs (it is a daemon: the process does not
-        wait for it)."""
-        self._tasks.put(None)
-
     def _run(self) -> None:
         if self._prepare is not None:  # jobs handed over meanwhile wait in the queue
             try:
@@ -105,10 +98,7 @@ class SolveWorker:
             except Exception as exc:  # the first job meets the same failure and reports it
                 self._logger.warning(f'solve worker: preparing failed ({exc!r})')
         while True:
-            task = self._tasks.get()
-            if task is None:
-                return
-            future, fn = task
+            future, fn = self._tasks.get()
             if not future.set_running_or_notify_cancel():
                 continue
             try:

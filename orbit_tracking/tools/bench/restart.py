@@ -171,8 +171,8 @@ def run_pass(
         estimator runs. Once the data heard here reach the kill's data time plus this, or
         ``max_gap / rate`` wall seconds after the kill (whichever comes first: what this
         process hears lags under load), the player is paused (SIGSTOP) until the restarted
-        estimator publishes its first status (it has subscribed by then), then resumed
-        (SIGCONT), so the data the estimator misses do not grow with the machine's load.
+        estimator's first status and its reader are seen here, then resumed (SIGCONT), so
+        the data the estimator misses do not grow with the machine's load.
         None: the player never waits.
     kill_signal : int
         ``signal.SIGKILL`` (default) or ``signal.SIGTERM``.
