@@ -56,3 +56,12 @@ def test_an_exception_comes_back_with_its_job_and_the_worker_goes_on(rclpy_node)
     worker.submit('good', lambda: 42)
     job = worker.take(block=True)
     assert job is not None and job.future.result() == 42 and job.running_s >= 0.0
+
+
+def test_a_job_run_here_is_done_on_the_calling_thread(rclpy_node):
+    worker = SolveWorker(rclpy_node, lambda: None)
+    worker.submit('here', threading.get_ident, here=True)
+    job = worker.take()  # done: no wait
+    assert job is not None and job.future.result() == threading.get_ident()
+    worker.submit('bad', lambda: 1 / 0, here=True)
+    assert isinstance(worker.take().future.exception(), ZeroDivisionError)

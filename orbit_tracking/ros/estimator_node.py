@@ -707,7 +707,11 @@ class EstimatorNode(WindowOutputs, StationInputs):
         obs = self.buffer.observations(t0, t1)
         withheld = Counter(self.buffer.withheld)
         previous = self.previous or None
-        self.worker.submit((span, tb, obs, withheld), lambda: self._core(obs, t0, t1, previous))
+        self.worker.submit(
+            (span, tb, obs, withheld),
+            lambda: self._core(obs, t0, t1, previous),
+            here=not self.background,
+        )
 
     def _core(
         self, obs: Observations, t0: float, t1: float, previous: dict[int, TargetSolution] | None

@@ -70,13 +70,22 @@ class SolveWorker:
         """Whether a job was handed over and not yet taken back."""
         return self.job is not None
 
-    def submit(self, context: Any, fn: Callable[[], Any]) -> None:
-        """Run ``fn()`` on the worker; ``context`` comes back with the job."""
+    def submit(self, context: Any, fn: Callable[[], Any], here: bool = False) -> None:
+        """Run ``fn()`` on the worker; ``context`` comes back with the job. ``here``: run
+        it now on the calling thread instead (the job is done when this returns), so that
+        no two threads ever compute at once and the numbers do not depend on timing."""
         if self.job is not None:
             raise RuntimeError('the solve worker runs one job at a time; take the last first')
         future: Future[Any] = Future()
         self.job = Job(context, future)
-        self._tasks.put((future, fn))
+        if not here:
+            self._tasks.put((future, fn))
+            return
+        future.set_running_or_notify_cancel()
+        try:
+            future.set_result(fn())
+        except Exception as exc:  # handed to the node with the job
+            future.set_exception(exc)
 
     def take(self, block: bool = False) -> Job | None:
         """The finished job, handed back once (its future holds the result or the

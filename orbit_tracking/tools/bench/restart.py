@@ -11,9 +11,6 @@ command line ``restart_after`` seconds later. :func:`measure_restart_loss` compa
 ``trajectory/states`` the two passes published (:func:`~orbit_tracking.tools.bench.
 restart_compare.compare_passes`).
 
-Before an estimator kill the player is paused from ``kill_at`` until the kill and while no
-estimator runs (``max_gap``); the estimator's ``flush_after`` is :data:`ESTIMATOR_FLUSH_S`.
-
 Messages the player sends while no estimator process runs reach no estimator: with the
 journal the restarted node has everything it had accepted before the kill, and the windows
 span that short gap in the data as they span any gap. A restarted results node goes on
@@ -63,9 +60,6 @@ RESTART_WINDOWS: Mapping[str, object] = {
     'output_step': 0.1,
 }
 """The estimator's windows: four over 30 s, three hand-overs (as the regression test)."""
-
-ESTIMATOR_FLUSH_S = 15.0
-"""The estimator's ``flush_after`` in every pass: above the pause before an estimator kill."""
 
 _PROCESSING = ('triangulation', 'estimator', 'results')
 _OUTPUT_TOPIC = {
@@ -159,8 +153,7 @@ def run_pass(
         here, and start it again ``restart_after`` seconds later; None: a clean pass.
     kill_at : float, optional
         Wait, before the delay, until the newest measurement received here is at least
-        this data time [s after the bag's epoch] as well; before an estimator kill the
-        player waits there until the kill (a slow solve must not push it past the bag).
+        this data time [s after the bag's epoch] as well.
     kill_after_checkpoint : bool
         Wait, before the delay, until the estimator's journal holds the checkpoint of the
         last of those windows (it is written once the readers acknowledged the window):
@@ -223,11 +216,9 @@ def run_pass(
     ref = {'time_reference': tb.ref_ns * 1e-9}
     overrides: dict[str, dict[str, object]] = {
         'triangulation': dict(ref),
-        # the pause before an estimator kill (kill_at) must not look like the stream's end
         'estimator': {
             **ref,
             **RESTART_WINDOWS,
-            'flush_after': ESTIMATOR_FLUSH_S,
             # no journal: the file's '' (an empty -p value does not parse)
             **({'journal_dir': str(work / 'journal')} if journal else {}),
             **(estimator_params or {}),
@@ -326,18 +317,12 @@ def run_pass(
         )
         deadline = t_start + timeout
         if kill_after_windows is not None:
-            held = False
             if kill_at is not None:
                 spin_until(
                     lambda: data_now[0] >= kill_at,
                     max(deadline - time.monotonic(), 1.0),
                     f'data time {kill_at:g} s before the kill',
                 )
-            if kill_at is not None and kill_node == 'estimator':
-                # the data wait here for the kill, however slow the window solves are under
-                # load (else the kill, and the restart, can come after the end of the bag)
-                procs['replay'].send_signal(signal.SIGSTOP)
-                held = True
             spin_until(
                 lambda: len(windows) >= kill_after_windows,
                 max(deadline - time.monotonic(), 1.0),
@@ -356,8 +341,6 @@ def run_pass(
             old_readers = _readers(node, probe_topic, kill_node)
             procs[kill_node].send_signal(kill_signal)
             procs[kill_node].wait(10)
-            if held:
-                procs['replay'].send_signal(signal.SIGCONT)
             killed_at = time.monotonic()
             killed_ns = time.time_ns()  # a status stamped later is the new process's
             out.kill_data_s = data_now[0]
