@@ -268,7 +268,9 @@ def detect_events(rough: RoughTrajectory, cfg: KnotConfig) -> list[float]:
     ``event_min_jump`` and ``event_sigma`` times its noise marks a candidate. The time
     of each event is then refined by fitting a continuous broken line to the velocity
     and searching the break on a grid of a twentieth of the sampling interval.
-    Needs velocity samples (telemetry); fixes give none.
+    Needs velocity samples (telemetry); fixes give none. A sample whose windows reach
+    across a hole in the sampling (more than 1.5 sampling intervals: an outage, a
+    dropout) is not a candidate: the edges of an outage are not events.
     """
     if rough.velocity is None or len(rough) < 10:
         return []
@@ -293,6 +295,16 @@ def detect_events(rough: RoughTrajectory, cfg: KnotConfig) -> list[float]:
     jump = np.linalg.norm(a_r - a_l, axis=1)
     jump[:k] = np.nan
     jump[n - k :] = np.nan
+    # the fits take the samples as evenly spaced: a sample whose windows reach across a
+    # hole (a telemetry outage, a dropout) compares fits over the wrong times, and the
+    # outage's edges came out as events (spurious acceleration jumps that freed the spline
+    # across the outage from the jerk prior). No event is claimed there; the measurements'
+    # knot test can still find one.
+    hole = np.diff(t) > 1.5 * dt
+    if np.any(hole):
+        holes = np.concatenate([[0], np.cumsum(hole)])  # holes before each sample
+        i = np.arange(k, n - k)
+        jump[i[holes[i + k] != holes[i - k]]] = np.nan
     sig_slope = rough.velocity_noise * float(np.sqrt(w_left @ w_left))
     threshold = max(cfg.event_min_jump, cfg.event_sigma * np.sqrt(2.0) * sig_slope * np.sqrt(3))
     cand = np.flatnonzero(np.nan_to_num(jump) > threshold)
