@@ -135,35 +135,5 @@ def test_a_staging_hidden_in_a_segment_widens_the_covariance_instead_of_failing_
     assert maha.max() < 5.0
     est_off, x_off, maha_off = _staging_in_a_segment(0.0)
     assert est_off.targets[0].manoeuvres is None
-    assert maha_off.max() > 8.0  # the silent failure the term removes
+    assert maha_off.max() > 5.0  # the silent failure the term removes
     np.testing.assert_array_equal(x, x_off)  # the estimate itself is not touched
-
-
-@pytest.mark.timeout(240)
-def test_the_default_density_covers_a_staging_inside_a_segment() -> None:
-    """Robustness ascent draw 34, its first window 0-60 s: a staging at 29.74 s inside an
-    incomplete segment (24.05-52.25 s, one pulse radar); no telemetry outage hides it, but
-    the knots of the segment cannot follow it. At 30 m^2/s^5 (one change of 30 m/s^2 per
-    30 s, an aircraft's turn) the states there were beyond 5 sigma; the default is sized
-    for a rocket's staging (burnout and ignition within seconds)."""
-    from orbit_tracking.core.estimation.config import EstimatorConfig
-    from orbit_tracking.core.estimation.estimator import estimate
-    from orbit_tracking.tools.bench.robustness_draw import _case
-
-    case = _case('ascent', 34)
-    sel = (case.truth_t >= 24.0) & (case.truth_t <= 52.0)
-
-    def worst(cfg: EstimatorConfig) -> tuple[np.ndarray, float]:
-        est = estimate(case.obs_est, 0.0, 60.0, cfg)
-        assert est.success, est.message
-        x, cov = est.targets[0].states(case.truth_t[sel])
-        e = x[:, :3] - case.truth_x[sel, :3]
-        return x, float(
-            np.sqrt(np.einsum('ki,kij,kj->k', e, np.linalg.inv(cov[:, :3, :3]), e)).max()
-        )
-
-    x, maha = worst(EstimatorConfig())
-    x_old, maha_old = worst(EstimatorConfig(gap_manoeuvre_density=30.0))
-    assert maha < 4.5
-    assert maha_old > 5.0  # the silent failure the default removes
-    np.testing.assert_array_equal(x, x_old)  # the estimate itself is not touched

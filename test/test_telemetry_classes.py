@@ -11,8 +11,8 @@ errors of hundreds of bound; the limits below catch a return of that.
 Silent failures are states more than 5 sigma off by their own covariance (Mahalanobis)
 while their window claims success. The issue's targets (gap within 1.5 bounds, NEES in
 its band) are not all met on this draw (see ``python -m orbit_tracking.tools.cli bench
---suite robustness``); the limits here are regression guards, not the targets, and
-time_skew is a known failure (strict xfail: it fails the suite once it passes, so the
+--suite robustness``); the limits here are regression guards, not the targets; a class
+listed in ``KNOWN_FAILING`` is a strict xfail (it fails the suite once it passes, so the
 mark is removed then).
 """
 
@@ -32,17 +32,12 @@ GAP_LIMIT: dict[str, float] = {}
 """Gap RMS over its bound, where a class is known to be weaker than the default 3."""
 
 
-KNOWN_FAILING = {
-    'time_skew': 'a time-tag skew of the telemetry: the delays are estimated (telemetry_delays '
-    'auto, the default; position delay 86.7 ms against the true 87.2) but the velocity delay '
-    'comes out at 10.6 +- 1.1 ms against the true 35.1 and a velocity error of its own takes '
-    'the rest; 43 states of the incomplete segment are more than 5 sigma off (issue 14, open)',
-    'separate_velocity': 'a velocity error of its own (GNSS Doppler): since max_knot_spacing '
-    "(5 s) adds three knots per axis outside the incomplete segment, the window's white-jerk "
-    'density, one for the whole window, falls from 0.0096 to 0.0069 m^2/s^5 and 4 states of the '
-    'segment (21.8-22.1 s, 0.135 m off) come out at 5.00-5.03 sigma; the largest was 4.54 '
-    'before (issue 14, open)',
-}
+KNOWN_FAILING: dict[str, str] = {}
+"""Classes known to fail, with the reason (strict xfail). time_skew was one until the
+events found in the telemetry were moved to its estimated velocity delay (its 43 silent
+states came from a staging placed 35 ms late, which pulled the delay estimate to 10.6 ms);
+separate_velocity's 5.03-sigma states went with the events no longer claimed at an
+outage's edges."""
 
 
 @pytest.mark.timeout(120)

@@ -5,7 +5,8 @@ A manoeuvring aircraft (robustness family, seed 4: two ships with a radar each, 
 its velocities ``d_v``: the window's score test asks for the two delays and the solve
 recovers them within a few of their sigmas; the same draw with white GPS errors keeps the
 model without delays. The delay rows (residuals and Jacobian) are checked against finite
-differences on the solved window.
+differences on the solved window. Events found in the telemetry sit at its time tags; with
+delays estimated they are moved to the velocity delay (``solve_with_aligned_events``).
 """
 
 from __future__ import annotations
@@ -14,10 +15,14 @@ import numpy as np
 import pytest
 
 from orbit_tracking.core.estimation import estimator as estimator_module
+from orbit_tracking.core.estimation import telemetry_delays
+from orbit_tracking.core.estimation.bspline import SplineAxis, SplineTrajectory
 from orbit_tracking.core.estimation.config import EstimatorConfig
 from orbit_tracking.core.estimation.estimator import estimate
 from orbit_tracking.tools.bench.robustness_draw import _case
 from orbit_tracking.tools.estimate import _window_summary
+
+align_events = telemetry_delays.align_events
 
 SEED, T0, T1 = 4, 0.0, 60.0
 
@@ -77,3 +82,64 @@ def test_the_delay_rows_match_finite_differences(monkeypatch):
         r1, _, _ = prob.evaluate(b2, False)
         # residuals are data minus model, the Jacobian is the model's derivative
         np.testing.assert_allclose(-(r1 - r0) / h, jac[:, k], atol=1e-3 * np.abs(jac[:, k]).max())
+
+
+def _traj(interior: list[float]) -> SplineTrajectory:
+    ax = SplineAxis.from_interior(np.array(interior), 0.0, 20.0, 4)
+    return SplineTrajectory((ax, ax, ax), np.zeros(3), np.eye(3))
+
+
+def test_align_events_moves_the_event_knots_and_nothing_else():
+    # an event at 8.0 s (multiplicity 3) found in telemetry stamped late; single knots
+    # at 5, 7.99 (it would be crossed) and 12
+    traj = _traj([5.0, 7.99, 8.0, 8.0, 8.0, 12.0])
+    axes = align_events(traj, [8.0], 0.0, 0.03, 0.025)
+    assert axes is not None
+    for ax in axes:
+        np.testing.assert_allclose(ax.interior, [5.0, 7.97, 7.97, 7.97, 12.0])
+    # from where they are now, back by 10 ms
+    back = align_events(_traj([5.0, 7.97, 7.97, 7.97, 12.0]), [8.0], 0.03, 0.02, 0.025)
+    assert back is not None
+    np.testing.assert_allclose(back[0].interior, [5.0, 7.98, 7.98, 7.98, 12.0])
+    # no knot at the event (it was outside this spline), or a target past the ends
+    assert align_events(traj, [15.0], 0.0, 0.03, 0.025) is None
+    assert align_events(_traj([19.99, 19.99, 19.99]), [19.99], 0.0, -0.02, 0.025) is None
+
+
+@pytest.mark.timeout(240)
+def test_events_moved_to_the_velocity_delay_keep_a_staging_in_a_segment_honest(monkeypatch):
+    """Robustness ascent draw 34, its first window 0-60 s: a staging at 29.74 s inside an
+    incomplete segment (24.05-52.25 s, one pulse radar) and telemetry whose velocity is
+    stamped 26.4 ms late. The event knots were found in that telemetry, 26 ms late; left
+    there, the velocity rows across the jump pulled the delay estimate to 3.9 +- 0.6 ms and
+    the segment's states came out 9 sigma off in a window claiming success. Estimated
+    without the telemetry around the events, then the events moved there, the delays and
+    the states are right."""
+    case = _case('ascent', 34)
+    true_dv = case.draw.scenario.telemetry.error_parameters['velocity_delay_s']
+    sel = (case.truth_t >= 24.0) & (case.truth_t <= 52.0)
+
+    def window():
+        est = estimate(case.obs_est, 0.0, 60.0, EstimatorConfig())
+        assert est.success, est.message
+        x, cov = est.targets[0].states(case.truth_t[sel])
+        e = x[:, :3] - case.truth_x[sel, :3]
+        maha = np.sqrt(np.einsum('ki,kij,kj->k', e, np.linalg.inv(cov[:, :3, :3]), e)).max()
+        delays = est.targets[0].telemetry_delays
+        assert delays is not None
+        return est, maha, delays
+
+    est, maha, (_, _, d_v, s_v) = window()
+    assert 'events moved' in est.message, est.message
+    # measured 26.5 +- 0.2 ms against the true 26.4
+    assert abs(d_v - true_dv) < 5.0 * s_v < 0.002, (d_v, s_v, true_dv)
+    assert maha < 4.5
+    monkeypatch.setattr(
+        estimator_module,
+        'solve_with_aligned_events',
+        lambda prob, out, *_: (prob, out, 0, 0, ''),
+    )
+    est_off, maha_off, (_, _, d_v_off, _) = window()
+    assert 'events moved' not in est_off.message
+    assert abs(d_v_off - true_dv) > 0.01  # the biased delay the move removes
+    assert maha_off > 5.0  # and the silent failure

@@ -77,7 +77,7 @@ from orbit_tracking.core.estimation.observability import (
 from orbit_tracking.core.estimation.problem import Problem
 from orbit_tracking.core.estimation.results import Estimate, TargetSolution, state_covariance
 from orbit_tracking.core.estimation.telemetry_block import TelemetryBlock
-from orbit_tracking.core.estimation.telemetry_delays import delay_test
+from orbit_tracking.core.estimation.telemetry_delays import delay_test, solve_with_aligned_events
 from orbit_tracking.core.estimation.telemetry_velocity import velocity_error_test
 from orbit_tracking.core.estimation.verdict import judge
 from orbit_tracking.core.models.measurements import residual
@@ -311,6 +311,17 @@ def _estimate_once(
             + f' (test {t.statistic:.3g} vs {t.threshold:.3g}, {t.dof} dof)'
             for t in d_tests
         )
+    if any(tb.delays for tb in prob.telemetry):
+        prob, out, it2, h2, shift_note = solve_with_aligned_events(
+            prob, out, events, obs, cfg, t0, t1
+        )
+        if shift_note:
+            iterations += it2
+            halvings += h2
+            r, jac, cov, cond, singular = covariance(prob, out.beta)
+            tel_note += shift_note
+            for tid in selections:  # the knots the solution is on
+                selections[tid] = replace(selections[tid], trajectory=prob.trajs[tid])
     if cfg.telemetry_velocity_error == 'auto' and prob.telemetry:
         tests = velocity_error_test(prob, out.beta, obs, cfg, t0, t1)
         switch = {t.target: True for t in tests if t.separate}
