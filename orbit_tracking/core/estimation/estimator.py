@@ -315,9 +315,9 @@ def _estimate_once(
         prob, out, it2, h2, shift_note = solve_with_aligned_events(
             prob, out, events, obs, cfg, t0, t1
         )
+        iterations += it2
+        halvings += h2
         if shift_note:
-            iterations += it2
-            halvings += h2
             r, jac, cov, cond, singular = covariance(prob, out.beta)
             tel_note += shift_note
             for tid in selections:  # the knots the solution is on

@@ -184,7 +184,7 @@ def solve_with_aligned_events(
         moved = align_events(
             prob.trajs[tb.target], list(todo[tb.target]), 0.0, d_v, cfg.knots.min_spacing
         )
-        if moved is not None and math.isfinite(d_v):
+        if moved is not None:
             axes[tb.target] = moved
             shifts[tb.target] = d_v
     if not axes:
@@ -193,7 +193,8 @@ def solve_with_aligned_events(
     new, beta = rebuild(masked, first.beta, axes, {}, obs, cfg, t0, t1)
     final, it2, h2 = solve(new, beta, cfg, warm_up=False)
     note = ''.join(
-        f'; telemetry {tid} events moved {1e3 * d:.1f} ms earlier to its velocity delay'
+        f'; telemetry {tid} events moved {1e3 * abs(d):.1f} ms '
+        f'{"earlier" if d > 0.0 else "later"} to its velocity delay'
         for tid, d in sorted(shifts.items())
     )
     return new, final, iterations + it2, halvings + h2, note
