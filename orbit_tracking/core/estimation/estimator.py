@@ -311,17 +311,15 @@ def _estimate_once(
             + f' (test {t.statistic:.3g} vs {t.threshold:.3g}, {t.dof} dof)'
             for t in d_tests
         )
-    if any(tb.delays for tb in prob.telemetry):
-        prob, out, it2, h2, shift_note = solve_with_aligned_events(
-            prob, out, events, obs, cfg, t0, t1
-        )
-        iterations += it2
-        halvings += h2
-        if shift_note:
-            r, jac, cov, cond, singular = covariance(prob, out.beta)
-            tel_note += shift_note
-            for tid in selections:  # the knots the solution is on
-                selections[tid] = replace(selections[tid], trajectory=prob.trajs[tid])
+    # (a no-op unless delays are estimated and the telemetry showed events)
+    prob, out, it2, h2, shift_note = solve_with_aligned_events(prob, out, events, obs, cfg, t0, t1)
+    iterations += it2
+    halvings += h2
+    if shift_note:
+        r, jac, cov, cond, singular = covariance(prob, out.beta)
+        tel_note += shift_note
+        for tid in selections:  # the knots the solution is on
+            selections[tid] = replace(selections[tid], trajectory=prob.trajs[tid])
     if cfg.telemetry_velocity_error == 'auto' and prob.telemetry:
         tests = velocity_error_test(prob, out.beta, obs, cfg, t0, t1)
         switch = {t.target: True for t in tests if t.separate}

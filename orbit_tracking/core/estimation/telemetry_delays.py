@@ -102,10 +102,10 @@ def align_events(
     event knot lies inside the spline (nothing to move)."""
     axes: list[SplineAxis] = []
     moved = False
+    at = [e - old_shift for e in events]
+    to = [e - new_shift for e in events]
     for ax in traj.axes:
         knots = ax.interior.copy()
-        at = [e - old_shift for e in events]
-        to = [e - new_shift for e in events]
         keep = np.ones(knots.size, dtype=bool)
         new: list[float] = []
         for a, b in zip(at, to, strict=True):
