@@ -24,6 +24,7 @@ from orbit_tracking.core.estimation.telemetry_evidence import (
     error_precision,
     evidence_covariance,
     evidence_grid,
+    reduced_information,
 )
 
 
@@ -163,3 +164,39 @@ def test_uncertain_sizes_widen_the_covariance_and_known_ones_do_not():
             assert out[-1, -1] > 1.5 * cov[-1, -1]  # carried to the other unknown
         else:
             assert ratio < 1.1, ratio
+
+
+def test_the_reduced_information_is_the_profile_of_the_whole_problem_off_its_optimum():
+    """A linear problem in other unknowns ``u`` and the error coefficients, with the
+    solver's conventions (residuals data - model, ``J`` the model's derivatives, so the
+    Gauss-Newton step is ``N^-1 J^T r``), at a point that is not its optimum: the data's
+    half chi-square minimised over ``u`` for fixed coefficients ``x`` is, up to a constant,
+    ``g^T (x - e) + (x - e)^T h (x - e) / 2``."""
+    tb = _block(False, False)
+    n_e = 3 * tb.axis.n_coef
+    rng = np.random.default_rng(11)
+    n_u, m = 5, 80
+    jac = rng.standard_normal((m, n_u + n_e))
+    y = rng.standard_normal(m)
+    q0 = error_precision(tb.axis.n_coef, *tb.prior_sigma)
+    point = rng.standard_normal(n_u + n_e)
+    e = point[n_u:]
+    r = y - jac @ point
+    normal = jac.T @ jac
+    normal[n_u:, n_u:] += q0
+    grad = jac.T @ r
+    grad[n_u:] -= q0 @ e  # the prior's rows 0 - M x are residuals too
+    sol = np.linalg.solve(normal, np.column_stack([np.eye(n_u + n_e)[:, n_u:], grad]))
+    h, g = reduced_information(tb, e, sol[n_u:, :-1], sol[n_u:, -1])
+
+    def profile(x):
+        ju, je = jac[:, :n_u], jac[:, n_u:]
+        u = np.linalg.lstsq(ju, y - je @ x, rcond=None)[0]
+        res = y - ju @ u - je @ x
+        return 0.5 * float(res @ res)
+
+    for _ in range(3):
+        x = e + rng.standard_normal(n_e)
+        want = profile(x) - profile(e)
+        got = g @ (x - e) + 0.5 * (x - e) @ h @ (x - e)
+        assert got == pytest.approx(want, rel=1e-8, abs=1e-8)

@@ -90,13 +90,14 @@ def reduced_information(
     tb: TelemetryBlock, e: FloatArray, c_ee: FloatArray, step: FloatArray | None = None
 ) -> tuple[FloatArray, FloatArray]:
     """``(h, g)`` of the module docstring for ``tb``'s error coefficients ``e`` from their
-    posterior covariance ``c_ee`` under the current sizes and the Gauss-Newton step of
-    the whole problem at ``e`` (its ``e`` part negated: ``N^-1 J^T r``; None at a
-    converged solution, where it is zero)."""
+    posterior covariance ``c_ee`` under the current sizes and the ``e`` part of the whole
+    problem's Gauss-Newton step there, ``N^-1 J^T r`` (None at a converged solution,
+    where it is zero): the reduced gradient of the half chi-square is ``-C_ee^-1`` times
+    that step, the data's part of it that less the prior's ``Q e``."""
     q0 = error_precision(tb.axis.n_coef, *tb.prior_sigma)
     s = np.linalg.inv(0.5 * (c_ee + c_ee.T))
     h = s - q0
-    g = -q0 @ e if step is None else s @ step - q0 @ e
+    g = -q0 @ e if step is None else -s @ step - q0 @ e
     return 0.5 * (h + h.T), g
 
 
