@@ -24,6 +24,7 @@ from orbit_tracking.core.estimation.telemetry_evidence import (
     error_precision,
     evidence_covariance,
     evidence_grid,
+    evidence_table,
     reduced_information,
 )
 
@@ -106,6 +107,19 @@ def test_the_log_evidence_is_that_of_the_linear_gaussian_model():
             cov = np.eye(y.size) + z @ np.linalg.inv(error_precision(4, *s)) @ z.T
             want.append(multivariate_normal(np.zeros(y.size), cov).logpdf(y))
         assert np.allclose(np.diff(got), np.diff(want), atol=1e-8)
+
+
+def test_the_table_by_woodbury_equals_the_evidence_pair_by_pair():
+    rng = np.random.default_rng(9)
+    n_coef = 6
+    _, _, h, g = _linear_data(rng, n_coef, (2.0, 0.3))
+    e = rng.standard_normal(3 * n_coef)
+    levels, steps = np.geomspace(1e-3, 10.0, 5), np.geomspace(1e-2, 30.0, 4)
+    table = evidence_table(h, g, e, n_coef, levels, steps)
+    want = [
+        [error_evidence(h, g, e, error_precision(n_coef, a, b)) for b in steps] for a in levels
+    ]
+    assert np.allclose(table, want, rtol=1e-9, atol=1e-6)
 
 
 def test_white_data_choose_the_floor_and_a_slow_error_its_own_size():
@@ -200,3 +214,21 @@ def test_the_reduced_information_is_the_profile_of_the_whole_problem_off_its_opt
         want = profile(x) - profile(e)
         got = g @ (x - e) + 0.5 * (x - e) @ h @ (x - e)
         assert got == pytest.approx(want, rel=1e-8, abs=1e-8)
+
+
+def test_the_mixture_moment_by_woodbury_equals_the_sum_over_the_grid():
+    from orbit_tracking.core.estimation.telemetry_evidence import _mixture_moment
+
+    rng = np.random.default_rng(13)
+    n_coef = 5
+    _, _, h, g = _linear_data(rng, n_coef, (2.0, 0.3))
+    e = rng.standard_normal(3 * n_coef)
+    sizes = np.geomspace(1e-2, 10.0, 6)
+    w = rng.random((6, 6))
+    w /= w.sum()
+    want = np.zeros((3 * n_coef, 3 * n_coef))
+    for (i, j), wij in np.ndenumerate(w):
+        c = np.linalg.inv(h + error_precision(n_coef, sizes[i], sizes[j]))
+        dx = c @ (h @ e - g) - e
+        want += wij * (c + np.outer(dx, dx))
+    assert np.allclose(_mixture_moment(h, g, e, n_coef, sizes, w), want, rtol=1e-9, atol=1e-12)

@@ -108,11 +108,54 @@ def evidence_grid(
     each pair, ``(k, k)`` indexed ``[level, step]``."""
     lo, hi = (k * tb.declared_sigma for k in ERROR_SIGMA_RANGE)
     sizes = np.geomspace(lo, hi, EVIDENCE_GRID)
-    n = tb.axis.n_coef
-    ev = np.array(
-        [[error_evidence(h, g, e, error_precision(n, a, b)) for b in sizes] for a in sizes]
-    )
-    return sizes, ev
+    return sizes, evidence_table(h, g, e, tb.axis.n_coef, sizes, sizes)
+
+
+def evidence_table(
+    h: FloatArray, g: FloatArray, e: FloatArray, n_coef: int, levels: FloatArray, steps: FloatArray
+) -> FloatArray:
+    """:func:`error_evidence` of every pair of ``levels`` and ``steps``, ``(len(levels),
+    len(steps))``, with one factorisation per step: the level enters the prior precision
+    only through the first coefficient of each axis, a rank-3 term, so that for a step's
+    ``K = h + D^T D / step^2`` the solution and the determinant of every level follow from
+    ``K^-1`` by Woodbury's identity and the determinant lemma; and ``log det Q`` of a
+    random walk is ``-6 log(level) - 6 (n_coef - 1) log(step)``."""
+    d = error_step_matrix(n_coef).toarray()
+    dtd = d.T @ d
+    v = h @ e - g
+    out = np.full((levels.size, steps.size), -math.inf)
+    for j, b in enumerate(steps):
+        k = h + dtd / b**2
+        try:
+            ck = sla.cho_factor(k)
+        except np.linalg.LinAlgError:  # only the level term makes it definite: one by one
+            for i, a in enumerate(levels):
+                out[i, j] = error_evidence(h, g, e, error_precision(n_coef, a, b))
+            continue
+        z = sla.cho_solve(ck, v)
+        p = sla.cho_solve(ck, np.eye(k.shape[0])[:, :3])  # K^-1 U, U the level's columns
+        logdet_k = 2.0 * float(np.sum(np.log(np.diag(ck[0]))))
+        m = levels[:, None, None] ** 2 * np.eye(3) + p[:3]  # (k, 3, 3)
+        try:
+            lm = np.linalg.cholesky(m)
+        except np.linalg.LinAlgError:
+            continue
+        y = np.linalg.solve(m, np.broadcast_to(z[:3, None], (levels.size, 3, 1)))[..., 0]
+        x = z[None, :] - y @ p.T  # (k, n): the solutions of every level
+        dx = x - e
+        dxx = x @ d.T
+        cost = (
+            dx @ g
+            + 0.5 * np.einsum('ki,ij,kj->k', dx, h, dx)
+            + 0.5 * (np.sum(x[:, :3] ** 2, axis=1) / levels**2 + np.sum(dxx**2, axis=1) / b**2)
+        )
+        # log det(K + U U^T / a^2) = log det K + log det(M) - 6 log a
+        log_a = np.log(levels)
+        logdet_m = 2.0 * np.sum(np.log(np.diagonal(lm, axis1=1, axis2=2)), axis=1)
+        logdet_post = logdet_k + logdet_m - 6.0 * log_a
+        logdet_q = -6.0 * log_a - 6.0 * (n_coef - 1) * math.log(b)
+        out[:, j] = -cost - 0.5 * (logdet_post - logdet_q)
+    return out
 
 
 def choose_sizes(
@@ -133,15 +176,12 @@ def choose_sizes(
     tb, h, g, e = refine
     ratio = float(sizes[1] / sizes[0])
     fine = np.geomspace(1.0 / ratio, ratio, 2 * REFINE_POINTS + 1)
-    lo, hi = sizes[0], sizes[-1]
-    levels = np.clip(best[0] * fine, lo, hi)
-    steps = np.clip(best[1] * fine, lo, hi)
-    top = float(ev[i, j])
-    for a in levels:
-        for b in steps:
-            v = error_evidence(h, g, e, error_precision(tb.axis.n_coef, a, b))
-            if v > top:
-                top, best = v, (float(a), float(b))
+    levels = np.clip(best[0] * fine, sizes[0], sizes[-1])
+    steps = np.clip(best[1] * fine, sizes[0], sizes[-1])
+    table = evidence_table(h, g, e, tb.axis.n_coef, levels, steps)
+    if np.max(table) > ev[i, j]:
+        k, m = np.unravel_index(int(np.argmax(table)), table.shape)
+        best = (float(levels[k]), float(steps[m]))
     return best
 
 
@@ -170,14 +210,7 @@ def evidence_covariance(
         return cov, 1.0
     w = np.exp(np.where(np.isfinite(ev), ev - np.max(ev[np.isfinite(ev)]), -np.inf))
     w /= w.sum()
-    moment = np.zeros_like(c_ee)
-    n = tb.axis.n_coef
-    for (i, j), wij in np.ndenumerate(w):
-        if wij < 1e-6:
-            continue
-        ca = sla.cho_factor(h + error_precision(n, float(sizes[i]), float(sizes[j])))
-        dx = sla.cho_solve(ca, h @ e - g) - e
-        moment += wij * (sla.cho_solve(ca, np.eye(e.size)) + np.outer(dx, dx))
+    moment = _mixture_moment(h, g, e, tb.axis.n_coef, sizes, w)
     extra = moment - c_ee
     val, vec = np.linalg.eigh(0.5 * (extra + extra.T))
     keep = val > 0.0
@@ -189,3 +222,38 @@ def evidence_covariance(
     d0 = np.diag(cov)
     ratio = float(np.max(np.diag(out)[d0 > 0] / d0[d0 > 0]))
     return out, ratio
+
+
+def _mixture_moment(
+    h: FloatArray, g: FloatArray, e: FloatArray, n_coef: int, sizes: FloatArray, w: FloatArray
+) -> FloatArray:
+    """Second moment about ``e`` of the error coefficients under the mixture of the grid's
+    posteriors with weights ``w`` (``[level, step]``): ``sum w (C + dx dx^T)``, with the
+    factorisation per step of :func:`evidence_table`."""
+    d = error_step_matrix(n_coef).toarray()
+    dtd = d.T @ d
+    v = h @ e - g
+    n = e.size
+    moment = np.zeros((n, n))
+    for j, b in enumerate(sizes):
+        wj = w[:, j]
+        live = wj >= 1e-9
+        if not live.any():
+            continue
+        levels, wl = sizes[live], wj[live]
+        try:
+            ki = sla.cho_solve(sla.cho_factor(h + dtd / b**2), np.eye(n))
+        except np.linalg.LinAlgError:
+            for a, wa in zip(levels, wl, strict=True):
+                ca = sla.cho_factor(h + error_precision(n_coef, float(a), float(b)))
+                dx = sla.cho_solve(ca, v) - e
+                moment += wa * (sla.cho_solve(ca, np.eye(n)) + np.outer(dx, dx))
+            continue
+        z = ki @ v
+        p = ki[:, :3]
+        m_inv = np.linalg.inv(levels[:, None, None] ** 2 * np.eye(3) + p[:3])  # (k, 3, 3)
+        x = z[None, :] - np.einsum('kab,b->ka', m_inv, z[:3]) @ p.T
+        dx = x - e
+        moment += wl.sum() * ki - p @ np.einsum('k,kab->ab', wl, m_inv) @ p.T
+        moment += (dx * wl[:, None]).T @ dx
+    return 0.5 * (moment + moment.T)
