@@ -197,7 +197,8 @@ def evidence_covariance(
     module docstring: the error block's second moment about the solution under the
     evidence-weighted mixture over the grid, where it exceeds the current sizes'
     covariance, carried to every unknown by its regression on the error coefficients.
-    Also the largest ratio of a variance of the result to that of ``cov``."""
+    Also the largest ratio of a variance of the result to that of ``cov`` among the
+    other unknowns (the trajectory's, the biases')."""
     sl = slice(tb.offset, tb.offset + 3 * tb.axis.n_coef)
     e = beta[sl]
     c_ee = cov[sl, sl]
@@ -220,7 +221,9 @@ def evidence_covariance(
     root = gain @ (vec[:, keep] * np.sqrt(val[keep]))
     out = cov + root @ root.T
     d0 = np.diag(cov)
-    ratio = float(np.max(np.diag(out)[d0 > 0] / d0[d0 > 0]))
+    rest = d0 > 0
+    rest[sl] = False
+    ratio = float(np.max(np.diag(out)[rest] / d0[rest], initial=1.0))
     return out, ratio
 
 
