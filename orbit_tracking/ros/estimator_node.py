@@ -320,8 +320,9 @@ class EstimatorNode(WindowOutputs, StationInputs):
                 'estimate_telemetry_error',
                 True,
                 'Estimate the two prior sizes of the telemetry error spline (its level and '
-                'its steps between coefficients) from the data (white telemetry then counts '
-                'in full); false holds both at the declared position sigma.',
+                'its steps between coefficients) from the data, by their evidence, and add '
+                'the uncertainty of that choice to the covariance (white telemetry then '
+                'counts in full); false holds both at the declared position sigma.',
                 read_only=True,
             ),
             jerk_prior=declare(

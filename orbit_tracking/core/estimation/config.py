@@ -131,9 +131,10 @@ class EstimatorConfig:
         Re-estimate the telemetry white-noise levels from the residuals.
     estimate_telemetry_error : bool
         Re-estimate the two prior sigmas of the telemetry error spline (its level and its
-        steps between consecutive coefficients) from the data (an evidence update of each
-        variance component per solve round) instead of holding them at the declared
-        position sigma.
+        steps between consecutive coefficients) from the data (the pair of largest evidence
+        per solve round, the uncertainty of the pair added to the published covariance;
+        :mod:`~orbit_tracking.core.estimation.telemetry_evidence`) instead of holding them
+        at the declared position sigma.
     max_chi2_dof : float
         Largest chi-square per degree of freedom of a window that is a success (with few
         degrees of freedom ``1 + 5 sqrt(2 / dof)`` if larger; see

@@ -78,6 +78,7 @@ from orbit_tracking.core.estimation.problem import Problem
 from orbit_tracking.core.estimation.results import Estimate, TargetSolution, state_covariance
 from orbit_tracking.core.estimation.telemetry_block import TelemetryBlock
 from orbit_tracking.core.estimation.telemetry_delays import delay_test, solve_with_aligned_events
+from orbit_tracking.core.estimation.telemetry_evidence import evidence_covariance
 from orbit_tracking.core.estimation.telemetry_velocity import velocity_error_test
 from orbit_tracking.core.estimation.verdict import judge
 from orbit_tracking.core.models.measurements import residual
@@ -429,6 +430,15 @@ def _estimate_once(
         tid: _gap_manoeuvres(prob, jac, cov, tid, segments[tid], cfg, verdict.covariance_scale)
         for tid in selections
     }
+    # after the consider term, which needs the data's own (J^T J)^-1
+    if cfg.estimate_telemetry_error:
+        for tb in prob.telemetry:
+            cov, ratio = evidence_covariance(tb, out.beta, cov)
+            if ratio > 1.01:
+                tel_note += (
+                    f'; telemetry {tb.target} error sizes uncertain: their evidence-weighted '
+                    f'spread widens variances by up to x{ratio:.3g}'
+                )
     cov = cov * verdict.covariance_scale
     targets = {}
     for tid, s in selections.items():

@@ -4,9 +4,11 @@ Two priors of :class:`~orbit_tracking.core.estimation.problem.Problem` have a si
 declares well: the telemetry error spline ``e`` (declared: the telemetry's position
 sigma, which for white telemetry is no slow error at all) and the white-jerk prior of every
 trajectory (a density nobody declares). Both are variance components of a Gaussian model,
-and :func:`reestimate_priors` sets them by MacKay's evidence update (type-II maximum
-likelihood) between the solve rounds of
-:func:`~orbit_tracking.core.estimation.gauss_newton.solve`.
+and :func:`reestimate_priors` sets them by their evidence (type-II maximum likelihood)
+between the solve rounds of :func:`~orbit_tracking.core.estimation.gauss_newton.solve`:
+the error spline's two sizes by a search on a grid
+(:mod:`~orbit_tracking.core.estimation.telemetry_evidence`), the densities by MacKay's
+update.
 """
 
 from __future__ import annotations
@@ -20,31 +22,31 @@ from numpy.typing import NDArray
 from orbit_tracking.core.estimation.config import EstimatorConfig
 from orbit_tracking.core.estimation.problem import Problem
 from orbit_tracking.core.estimation.scaling import jacobi_scaled
-from orbit_tracking.core.estimation.telemetry_block import TelemetryBlock, error_step_matrix
+from orbit_tracking.core.estimation.telemetry_block import TelemetryBlock
+from orbit_tracking.core.estimation.telemetry_evidence import (
+    ERROR_SIGMA_RANGE,
+    choose_sizes,
+    evidence_grid,
+    reduced_information,
+)
 
 __all__ = ['ERROR_SIGMA_RANGE', 'JERK_Q_FLOOR', 'reestimate_priors']
 
 FloatArray = NDArray[np.float64]
 
 
-ERROR_SIGMA_RANGE = (1e-3, 10.0)
-"""The telemetry error spline's prior sigma stays within these multiples of the declared
-position sigma."""
-
-
 def reestimate_priors(prob: Problem, beta: FloatArray, cfg: EstimatorConfig) -> bool:
-    """The sizes of the window's zero-mean priors from the data, by MacKay's evidence
-    update of a variance component: for a prior ``|M x|^2 / s^2`` of rank ``r`` on some
-    unknowns ``x``, ``s^2 = |M x|^2 / gamma`` with ``gamma = r - tr(M C M^T) / s^2`` the
-    number of its directions the data determine (``C`` the posterior covariance of
-    ``x``); at most a factor of 10 per round once set.
+    """The sizes of the window's zero-mean priors from the data.
 
-    - The telemetry error spline ``e`` (``estimate_telemetry_error``): white telemetry
-      drives its sigma down (its positions then count in full, instead of being half
-      absorbed by an error allowance they do not have); a drift as large as the declared
-      sigma or larger keeps or raises it (within :data:`ERROR_SIGMA_RANGE`).
-    - The white-jerk density ``q`` of every trajectory (``jerk_prior``), iterated to its
-      fixed point on the linearised problem (:func:`_jerk_densities`).
+    - The telemetry error spline ``e`` (``estimate_telemetry_error``): its level and step
+      sigmas of largest evidence, searched on a grid within :data:`ERROR_SIGMA_RANGE` of
+      the declared sigma (:mod:`~orbit_tracking.core.estimation.telemetry_evidence`).
+      White telemetry takes them to the floor (its positions then count in full, instead
+      of being half absorbed by an error allowance they do not have); a drift as large as
+      the declared sigma or larger keeps or raises them.
+    - The white-jerk density ``q`` of every trajectory (``jerk_prior``), by MacKay's
+      evidence update of a variance component iterated to its fixed point on the
+      linearised problem (:func:`_jerk_densities`).
 
     True when a size moved by more than 5 %."""
     tels = prob.telemetry if cfg.estimate_telemetry_error else []
@@ -65,48 +67,29 @@ def reestimate_priors(prob: Problem, beta: FloatArray, cfg: EstimatorConfig) -> 
             tels = []
     for tb in tels:
         sl = slice(tb.offset, tb.offset + 3 * tb.axis.n_coef)
-        unit = np.zeros((prob.n, sl.stop - sl.start))
-        unit[sl] = np.eye(sl.stop - sl.start)
-        c_ee = (sla.cho_solve(fac, unit) / d[:, None])[sl] / d[None, sl]
-        changed |= _error_sizes(tb, beta[sl], c_ee)
+        unit = np.zeros((prob.n, sl.stop - sl.start + 1))
+        unit[sl, :-1] = np.eye(sl.stop - sl.start)
+        unit[:, -1] = np.asarray(jac.T @ r)  # the whole problem's gradient
+        sol = sla.cho_solve(fac, unit / d[:, None]) / d[:, None]
+        changed |= _error_sizes(tb, beta[sl], sol[sl, :-1], sol[sl, -1])
     changed |= _jerk_densities(prob, beta, normal, np.asarray(jac.T @ r))
     return changed
 
 
-def _error_sizes(tb: TelemetryBlock, e: FloatArray, c_ee: FloatArray) -> bool:
-    """New level and step sigmas of ``tb``'s error spline from its coefficients ``e`` and
-    their posterior covariance ``c_ee``; True when one moved by more than 5 %."""
-    bounds = tuple(k * tb.declared_sigma for k in ERROR_SIGMA_RANGE)
-    new = (
-        _component(tb.prior_sigma[0], np.eye(3, e.size), e, c_ee, bounds),
-        _component(
-            tb.prior_sigma[1], error_step_matrix(tb.axis.n_coef).toarray(), e, c_ee, bounds
-        ),
-    )
+def _error_sizes(tb: TelemetryBlock, e: FloatArray, c_ee: FloatArray, step: FloatArray) -> bool:
+    """New level and step sigmas of ``tb``'s error spline, those of largest evidence, from
+    its coefficients ``e``, their posterior covariance ``c_ee`` and ``N^-1 J^T r`` there
+    (``step``); True when one moved by more than 5 %."""
+    try:
+        h, g = reduced_information(tb, e, c_ee, step)
+    except np.linalg.LinAlgError:
+        return False
+    new = choose_sizes(*evidence_grid(tb, h, g, e), refine=(tb, h, g, e))
+    if new is None:
+        return False
     changed = any(abs(a - b) > 0.05 * b for a, b in zip(new, tb.prior_sigma, strict=True))
     tb.prior_sigma = new
     return changed
-
-
-def _component(
-    old: float, m: FloatArray, x: FloatArray, cov: FloatArray, bounds: tuple[float, ...]
-) -> float:
-    """The new sigma of the prior ``|m x|^2 / sigma^2`` (``cov``: the posterior covariance
-    of ``x``), moved by at most a factor of 10 and kept within ``bounds``."""
-    y = m @ x
-    new = _variance_update(old, float(y @ y), y.size, float(np.sum((m @ cov) * m)))
-    return min(max(new, old / 10.0, bounds[0]), 10.0 * old, bounds[1])
-
-
-def _variance_update(old: float, square: float, rank: int, trace: float) -> float:
-    """The evidence update of one variance component's sigma: MacKay's
-    ``|M x|^2 / gamma`` where the data determine enough of it (``gamma > 0.5``), else the
-    EM update ``(|M x|^2 + tr(M C M^T)) / rank``, which keeps a size the data cannot tell
-    (MacKay's would take it to zero there)."""
-    gamma = rank - trace / old**2
-    if gamma > 0.5:
-        return math.sqrt(square / gamma)
-    return math.sqrt((square + trace) / rank)
 
 
 def _jerk_densities(prob: Problem, beta: FloatArray, normal: FloatArray, grad: FloatArray) -> bool:

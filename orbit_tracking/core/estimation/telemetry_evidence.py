@@ -1,0 +1,262 @@
+"""The size of the telemetry error spline from the evidence, and what not knowing it costs
+(issue 14, item 3).
+
+The telemetry error spline ``e`` (:mod:`~orbit_tracking.core.estimation.telemetry_block`)
+has two prior sigmas nobody declares: its level and its steps between consecutive
+coefficients. White telemetry has no slow error at all (both sizes ~0: its positions count
+in full); a drift, a random walk or a bias needs them as large as the error. Which one a
+window has is a question for its data, answered by the evidence (the marginal likelihood,
+type-II maximum likelihood) of the window linearised at its solution:
+
+* the data's information on ``e`` with every other unknown marginalised, ``h`` (the Schur
+  complement of the normal matrix without ``e``'s prior), and its gradient ``g``, give the
+  data's half chi-square in ``e`` as ``g^T (x - e) + (x - e)^T h (x - e) / 2``;
+* for a prior precision ``Q(level, step)`` the log evidence is, up to a constant,
+  ``-min_x [that + x^T Q x / 2] - log det(h + Q) / 2 + log det(Q) / 2``
+  (:func:`error_evidence`), evaluated on a grid of both sizes over
+  :data:`ERROR_SIGMA_RANGE` of the declared sigma (:func:`evidence_grid`). An iterated
+  evidence update (EM) crept along the flat evidence of white telemetry and stopped at a
+  tenth of the declared sigma, which took half the telemetry's information away.
+
+The window is solved with the sizes of largest evidence (:func:`choose_sizes`: the best
+point of the grid, then of a finer grid around it). Where the
+evidence is flat (the stations too weak to tell a slow telemetry error from none, e.g. a
+random walk seen only by far radars), the best sizes are one guess among many equally
+likely: the published covariance then carries all of them, :func:`evidence_covariance`
+adds the spread of the evidence-weighted mixture over the grid (each size's posterior
+covariance and its solution's offset from the chosen one), never less than the chosen
+sizes' own covariance (Bayesian averaging over the sizes, as a second moment about the
+published solution).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import scipy.linalg as sla
+from numpy.typing import NDArray
+
+from orbit_tracking.core.estimation.telemetry_block import TelemetryBlock, error_step_matrix
+
+__all__ = [
+    'ERROR_SIGMA_RANGE',
+    'EVIDENCE_GRID',
+    'choose_sizes',
+    'error_evidence',
+    'error_precision',
+    'evidence_covariance',
+    'evidence_grid',
+]
+
+FloatArray = NDArray[np.float64]
+
+ERROR_SIGMA_RANGE = (1e-3, 10.0)
+"""The telemetry error spline's prior sigmas stay within these multiples of the declared
+position sigma."""
+
+EVIDENCE_GRID = 17
+"""Points per size on the grid of the evidence (a quarter decade apart over the four
+decades of :data:`ERROR_SIGMA_RANGE`)."""
+
+
+def error_precision(n_coef: int, level: float, step: float) -> FloatArray:
+    """The prior precision of ``e``'s ``3 n_coef`` coefficients: its first coefficient per
+    axis over ``level``, each later one minus its predecessor over ``step``
+    (:func:`~orbit_tracking.core.estimation.telemetry_block.error_prior_matrix`)."""
+    m = error_step_matrix(n_coef).toarray()
+    q = m.T @ m / step**2
+    q[:3, :3] += np.eye(3) / level**2
+    return q
+
+
+def error_evidence(h: FloatArray, g: FloatArray, e: FloatArray, q: FloatArray) -> float:
+    """Log evidence, up to a constant, of the prior precision ``q`` of the error
+    coefficients: the data's half chi-square in them ``g^T (x - e) + (x - e)^T h (x - e)
+    / 2`` (everything else marginalised), the prior ``x^T q x / 2``; ``-inf`` where
+    ``h + q`` is not positive definite."""
+    try:
+        ca = sla.cho_factor(h + q)
+        cq = sla.cho_factor(q)
+    except np.linalg.LinAlgError:
+        return -math.inf
+    x = sla.cho_solve(ca, h @ e - g)
+    dx = x - e
+    cost = float(g @ dx + 0.5 * dx @ h @ dx + 0.5 * x @ q @ x)
+    return -cost - float(np.sum(np.log(np.diag(ca[0]))) - np.sum(np.log(np.diag(cq[0]))))
+
+
+def reduced_information(
+    tb: TelemetryBlock, e: FloatArray, c_ee: FloatArray, step: FloatArray | None = None
+) -> tuple[FloatArray, FloatArray]:
+    """``(h, g)`` of the module docstring for ``tb``'s error coefficients ``e`` from their
+    posterior covariance ``c_ee`` under the current sizes and the ``e`` part of the whole
+    problem's Gauss-Newton step there, ``N^-1 J^T r`` (None at a converged solution,
+    where it is zero): the reduced gradient of the half chi-square is ``-C_ee^-1`` times
+    that step, the data's part of it that less the prior's ``Q e``."""
+    q0 = error_precision(tb.axis.n_coef, *tb.prior_sigma)
+    s = np.linalg.inv(0.5 * (c_ee + c_ee.T))
+    h = s - q0
+    g = -q0 @ e if step is None else -s @ step - q0 @ e
+    return 0.5 * (h + h.T), g
+
+
+def evidence_grid(
+    tb: TelemetryBlock, h: FloatArray, g: FloatArray, e: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """The sizes tried (``(k,)`` [m], for level and step alike) and the log evidence of
+    each pair, ``(k, k)`` indexed ``[level, step]``."""
+    lo, hi = (k * tb.declared_sigma for k in ERROR_SIGMA_RANGE)
+    sizes = np.geomspace(lo, hi, EVIDENCE_GRID)
+    return sizes, evidence_table(h, g, e, tb.axis.n_coef, sizes, sizes)
+
+
+def evidence_table(
+    h: FloatArray, g: FloatArray, e: FloatArray, n_coef: int, levels: FloatArray, steps: FloatArray
+) -> FloatArray:
+    """:func:`error_evidence` of every pair of ``levels`` and ``steps``, ``(len(levels),
+    len(steps))``, with one factorisation per step: the level enters the prior precision
+    only through the first coefficient of each axis, a rank-3 term, so that for a step's
+    ``K = h + D^T D / step^2`` the solution and the determinant of every level follow from
+    ``K^-1`` by Woodbury's identity and the determinant lemma; and ``log det Q`` of a
+    random walk is ``-6 log(level) - 6 (n_coef - 1) log(step)``."""
+    d = error_step_matrix(n_coef).toarray()
+    dtd = d.T @ d
+    v = h @ e - g
+    out = np.full((levels.size, steps.size), -math.inf)
+    for j, b in enumerate(steps):
+        k = h + dtd / b**2
+        try:
+            ck = sla.cho_factor(k)
+        except np.linalg.LinAlgError:  # only the level term makes it definite: one by one
+            for i, a in enumerate(levels):
+                out[i, j] = error_evidence(h, g, e, error_precision(n_coef, a, b))
+            continue
+        z = sla.cho_solve(ck, v)
+        p = sla.cho_solve(ck, np.eye(k.shape[0])[:, :3])  # K^-1 U, U the level's columns
+        logdet_k = 2.0 * float(np.sum(np.log(np.diag(ck[0]))))
+        m = levels[:, None, None] ** 2 * np.eye(3) + p[:3]  # (k, 3, 3)
+        try:
+            lm = np.linalg.cholesky(m)
+        except np.linalg.LinAlgError:
+            continue
+        y = np.linalg.solve(m, np.broadcast_to(z[:3, None], (levels.size, 3, 1)))[..., 0]
+        x = z[None, :] - y @ p.T  # (k, n): the solutions of every level
+        dx = x - e
+        dxx = x @ d.T
+        cost = (
+            dx @ g
+            + 0.5 * np.einsum('ki,ij,kj->k', dx, h, dx)
+            + 0.5 * (np.sum(x[:, :3] ** 2, axis=1) / levels**2 + np.sum(dxx**2, axis=1) / b**2)
+        )
+        # log det(K + U U^T / a^2) = log det K + log det(M) - 6 log a
+        log_a = np.log(levels)
+        logdet_m = 2.0 * np.sum(np.log(np.diagonal(lm, axis1=1, axis2=2)), axis=1)
+        logdet_post = logdet_k + logdet_m - 6.0 * log_a
+        logdet_q = -6.0 * log_a - 6.0 * (n_coef - 1) * math.log(b)
+        out[:, j] = -cost - 0.5 * (logdet_post - logdet_q)
+    return out
+
+
+def choose_sizes(
+    sizes: FloatArray,
+    ev: FloatArray,
+    refine: tuple[TelemetryBlock, FloatArray, FloatArray, FloatArray] | None = None,
+) -> tuple[float, float] | None:
+    """The ``(level, step)`` of largest evidence on the grid; None when no pair has a
+    finite one. With ``refine`` (the block and its ``h, g, e``) the best point is then
+    searched again on a grid :data:`REFINE_POINTS` times finer around it (within one step
+    of the coarse grid and :data:`ERROR_SIGMA_RANGE`)."""
+    if not np.isfinite(ev).any():
+        return None
+    i, j = np.unravel_index(int(np.argmax(np.where(np.isfinite(ev), ev, -np.inf))), ev.shape)
+    best = (float(sizes[i]), float(sizes[j]))
+    if refine is None:
+        return best
+    tb, h, g, e = refine
+    ratio = float(sizes[1] / sizes[0])
+    fine = np.geomspace(1.0 / ratio, ratio, 2 * REFINE_POINTS + 1)
+    levels = np.clip(best[0] * fine, sizes[0], sizes[-1])
+    steps = np.clip(best[1] * fine, sizes[0], sizes[-1])
+    table = evidence_table(h, g, e, tb.axis.n_coef, levels, steps)
+    if np.max(table) > ev[i, j]:
+        k, m = np.unravel_index(int(np.argmax(table)), table.shape)
+        best = (float(levels[k]), float(steps[m]))
+    return best
+
+
+REFINE_POINTS = 4
+"""Points per coarse grid step of the refined search around the best pair."""
+
+
+def evidence_covariance(
+    tb: TelemetryBlock, beta: FloatArray, cov: FloatArray
+) -> tuple[FloatArray, float]:
+    """``cov`` (the window's posterior covariance with ``tb``'s current sizes, at the
+    converged solution ``beta``) with the uncertainty of those sizes added, as in the
+    module docstring: the error block's second moment about the solution under the
+    evidence-weighted mixture over the grid, where it exceeds the current sizes'
+    covariance, carried to every unknown by its regression on the error coefficients.
+    Also the largest ratio of a variance of the result to that of ``cov`` among the
+    other unknowns (the trajectory's, the biases')."""
+    sl = slice(tb.offset, tb.offset + 3 * tb.axis.n_coef)
+    e = beta[sl]
+    c_ee = cov[sl, sl]
+    try:
+        h, g = reduced_information(tb, e, c_ee)
+    except np.linalg.LinAlgError:
+        return cov, 1.0
+    sizes, ev = evidence_grid(tb, h, g, e)
+    if not np.isfinite(ev).any():
+        return cov, 1.0
+    w = np.exp(np.where(np.isfinite(ev), ev - np.max(ev[np.isfinite(ev)]), -np.inf))
+    w /= w.sum()
+    moment = _mixture_moment(h, g, e, tb.axis.n_coef, sizes, w)
+    extra = moment - c_ee
+    val, vec = np.linalg.eigh(0.5 * (extra + extra.T))
+    keep = val > 0.0
+    if not keep.any():
+        return cov, 1.0
+    gain = cov[:, sl] @ np.linalg.inv(c_ee)  # regression of every unknown on e
+    root = gain @ (vec[:, keep] * np.sqrt(val[keep]))
+    out = cov + root @ root.T
+    d0 = np.diag(cov)
+    rest = d0 > 0
+    rest[sl] = False
+    ratio = float(np.max(np.diag(out)[rest] / d0[rest], initial=1.0))
+    return out, ratio
+
+
+def _mixture_moment(
+    h: FloatArray, g: FloatArray, e: FloatArray, n_coef: int, sizes: FloatArray, w: FloatArray
+) -> FloatArray:
+    """Second moment about ``e`` of the error coefficients under the mixture of the grid's
+    posteriors with weights ``w`` (``[level, step]``): ``sum w (C + dx dx^T)``, with the
+    factorisation per step of :func:`evidence_table`."""
+    d = error_step_matrix(n_coef).toarray()
+    dtd = d.T @ d
+    v = h @ e - g
+    n = e.size
+    moment = np.zeros((n, n))
+    for j, b in enumerate(sizes):
+        wj = w[:, j]
+        live = wj >= 1e-9
+        if not live.any():
+            continue
+        levels, wl = sizes[live], wj[live]
+        try:
+            ki = sla.cho_solve(sla.cho_factor(h + dtd / b**2), np.eye(n))
+        except np.linalg.LinAlgError:
+            for a, wa in zip(levels, wl, strict=True):
+                ca = sla.cho_factor(h + error_precision(n_coef, float(a), float(b)))
+                dx = sla.cho_solve(ca, v) - e
+                moment += wa * (sla.cho_solve(ca, np.eye(n)) + np.outer(dx, dx))
+            continue
+        z = ki @ v
+        p = ki[:, :3]
+        m_inv = np.linalg.inv(levels[:, None, None] ** 2 * np.eye(3) + p[:3])  # (k, 3, 3)
+        x = z[None, :] - np.einsum('kab,b->ka', m_inv, z[:3]) @ p.T
+        dx = x - e
+        moment += wl.sum() * ki - p @ np.einsum('k,kab->ab', wl, m_inv) @ p.T
+        moment += (dx * wl[:, None]).T @ dx
+    return 0.5 * (moment + moment.T)
