@@ -78,7 +78,10 @@ from orbit_tracking.core.estimation.problem import Problem
 from orbit_tracking.core.estimation.results import Estimate, TargetSolution, state_covariance
 from orbit_tracking.core.estimation.telemetry_block import TelemetryBlock
 from orbit_tracking.core.estimation.telemetry_delays import delay_test, solve_with_aligned_events
-from orbit_tracking.core.estimation.telemetry_evidence import evidence_covariance
+from orbit_tracking.core.estimation.telemetry_evidence import (
+    carried_evidence,
+    evidence_covariance,
+)
 from orbit_tracking.core.estimation.telemetry_velocity import velocity_error_test
 from orbit_tracking.core.estimation.verdict import judge
 from orbit_tracking.core.models.measurements import residual
@@ -229,7 +232,15 @@ def _estimate_once(
 
     def problem_on_selections() -> Problem:
         sols = {t: (s.trajectory, s.coef) for t, s in selections.items()}
-        return Problem(obs, sols, cfg, t0, t1, tel_events=events)
+        built = Problem(obs, sols, cfg, t0, t1, tel_events=events)
+        for tb in built.telemetry if cfg.estimate_telemetry_error and previous else ():
+            prev = previous.get(tb.target) if previous else None
+            tb.size_prior = carried_evidence(
+                None if prev is None else prev.telemetry_size_evidence, tb.declared_sigma
+            )
+            if tb.size_prior is not None and prev is not None and prev.telemetry_error_sigma:
+                tb.prior_sigma = prev.telemetry_error_sigma  # start where it ended
+        return built
 
     prob = problem_on_selections()
     beta = np.zeros(prob.n)
@@ -431,9 +442,12 @@ def _estimate_once(
         for tid in selections
     }
     # after the consider term, which needs the data's own (J^T J)^-1
+    size_evidence: dict[int, tuple[float, FloatArray]] = {}
     if cfg.estimate_telemetry_error:
         for tb in prob.telemetry:
-            cov, ratio = evidence_covariance(tb, out.beta, cov)
+            cov, ratio, table = evidence_covariance(tb, out.beta, cov)
+            if table is not None:
+                size_evidence[tb.target] = (tb.declared_sigma, table)
             if ratio > 1.01:
                 tel_note += (
                     f'; telemetry {tb.target} error sizes uncertain: their evidence-weighted '
@@ -464,6 +478,7 @@ def _estimate_once(
             prob.jerk_q.get(tid),
             _delays(tel, out.beta, cov),
             manoeuvres[tid],
+            size_evidence.get(tid),
         )
     factors = {
         (b.station, f): float(b.factor[j])

@@ -467,6 +467,7 @@ def rebuild(
     for tb_new, tb_old in zip(new.telemetry, prob.telemetry, strict=True):
         tb_new.noise = list(tb_old.noise)
         tb_new.prior_sigma = tb_old.prior_sigma
+        tb_new.size_prior = tb_old.size_prior
         old_e = beta[tb_old.offset : tb_old.offset + 3 * tb_old.axis.n_coef].reshape(-1, 3)
         if tb_new.axis is tb_old.axis:
             new_e = old_e

@@ -45,6 +45,11 @@ class TargetSolution:
     d_v, sigma)`` [s] (None when the window did not estimate them). ``manoeuvres`` is the
     consider term of the manoeuvres its incomplete segments may hide, which :meth:`states`
     adds to the covariance (None when off or without segments).
+    ``telemetry_size_evidence`` is the telemetry's declared position sigma and the log
+    evidence of the error sizes on the grid of
+    :func:`~orbit_tracking.core.estimation.telemetry_evidence.evidence_grid`, this
+    window's and its predecessors' (what the next window starts from; None without
+    telemetry fused or without the sizes estimated).
     """
 
     target_id: int
@@ -61,6 +66,7 @@ class TargetSolution:
     jerk_density: float | None = None
     telemetry_delays: tuple[float, float, float, float] | None = None
     manoeuvres: GapManoeuvres | None = None
+    telemetry_size_evidence: tuple[float, FloatArray] | None = None
 
     @property
     def t0(self) -> float:

@@ -81,6 +81,9 @@ class TelemetryBlock:
     w_design: sp.csr_matrix | None = None  # (3m, 3 n_w)
     declared_sigma: float = 1.0  # the telemetry's declared position sigma (median) [m]
     aw: sp.csr_matrix | None = None  # acceleration design: time-tag delays estimated
+    # log evidence of the error sizes carried from the previous windows, on the grid of
+    # telemetry_evidence.evidence_grid (None: none carried; see that module)
+    size_prior: FloatArray | None = None
 
     @property
     def delays(self) -> bool:
