@@ -29,6 +29,7 @@ from orbit_tracking.core.estimation.telemetry_evidence import (
     error_evidence,
     error_precision,
     evidence_covariance,
+    evidence_covariances,
     evidence_grid,
     evidence_table,
     reduced_information,
@@ -308,3 +309,45 @@ def test_a_window_whose_own_data_cannot_tell_the_sizes_keeps_its_predecessors():
     d = x[:, :3] - truth.position[sel]
     maha = np.sqrt(np.einsum('ki,kij,kj->k', d, np.linalg.inv(c[:, :3, :3]), d))
     assert maha.max() < 4.0, (maha.max(), np.abs(d).max(), sol.telemetry_error_sigma)
+
+
+def test_two_targets_telemetry_widen_the_covariance_in_either_order():
+    """Two telemetry blocks whose error coefficients are correlated (one more unknown
+    measured with both): each block's widening is read off the window's covariance, so the
+    result does not depend on their order; one block alone is evidence_covariance."""
+    rng = np.random.default_rng(13)
+    blocks, hs, gs = [], [], []
+    offset = 0
+    for _ in range(2):
+        tb = _block(False, False)
+        tb.declared_sigma = 1.0
+        tb.offset = offset
+        n_e = 3 * tb.axis.n_coef
+        offset += n_e
+        _, _, h, g = _linear_data(rng, tb.axis.n_coef, (3.0, 0.5), white=30.0)
+        sizes, ev = evidence_grid(tb, h, g, np.zeros(n_e))
+        tb.prior_sigma = choose_sizes(sizes, ev)
+        blocks.append(tb)
+        hs.append(h + error_precision(tb.axis.n_coef, *tb.prior_sigma))
+        gs.append(g)
+    n = offset + 1
+    a = np.zeros((n, n))
+    a[: offset // 2, : offset // 2] = hs[0]
+    a[offset // 2 : offset, offset // 2 : offset] = hs[1]
+    for first in (0, offset // 2):  # rows u + x_first of weight 4: u ties the blocks
+        a[first, first] += 4.0
+        a[first, -1] = a[-1, first] = 4.0
+        a[-1, -1] += 4.0
+    cov = np.linalg.inv(a)
+    beta = -cov @ np.concatenate([*gs, [0.0]])
+    one, ratio_one, table_one = evidence_covariance(blocks[0], beta, cov)
+    alone, ratios, tables = evidence_covariances(blocks[:1], beta, cov)
+    assert np.array_equal(alone, one) and ratios == [ratio_one]
+    assert np.array_equal(tables[0], table_one)
+    ab, ratios_ab, _ = evidence_covariances(blocks, beta, cov)
+    ba, ratios_ba, _ = evidence_covariances(blocks[::-1], beta, cov)
+    assert np.allclose(ab, ba, rtol=1e-12, atol=1e-12 * np.abs(ab).max())
+    assert ratios_ab == ratios_ba[::-1] and min(ratios_ab) > 1.01
+    # one after the other (each reading the covariance the other widened) is not the same
+    seq = evidence_covariance(blocks[1], beta, evidence_covariance(blocks[0], beta, cov)[0])[0]
+    assert not np.allclose(seq, ab, rtol=1e-6)

@@ -80,7 +80,7 @@ from orbit_tracking.core.estimation.telemetry_block import TelemetryBlock
 from orbit_tracking.core.estimation.telemetry_delays import delay_test, solve_with_aligned_events
 from orbit_tracking.core.estimation.telemetry_evidence import (
     carried_evidence,
-    evidence_covariance,
+    evidence_covariances,
 )
 from orbit_tracking.core.estimation.telemetry_velocity import velocity_error_test
 from orbit_tracking.core.estimation.verdict import judge
@@ -444,8 +444,8 @@ def _estimate_once(
     # after the consider term, which needs the data's own (J^T J)^-1
     size_evidence: dict[int, tuple[float, FloatArray]] = {}
     if cfg.estimate_telemetry_error:
-        for tb in prob.telemetry:
-            cov, ratio, table = evidence_covariance(tb, out.beta, cov)
+        cov, ratios, tables = evidence_covariances(prob.telemetry, out.beta, cov)
+        for tb, ratio, table in zip(prob.telemetry, ratios, tables, strict=True):
             if table is not None:
                 size_evidence[tb.target] = (tb.declared_sigma, table)
             if ratio > 1.01:

@@ -43,6 +43,7 @@ with data of its own is hardly moved by it; one without keeps what the pass has 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 import scipy.linalg as sla
@@ -60,6 +61,7 @@ __all__ = [
     'error_evidence',
     'error_precision',
     'evidence_covariance',
+    'evidence_covariances',
     'evidence_grid',
 ]
 
@@ -286,6 +288,24 @@ def evidence_covariance(
     rest[sl] = False
     ratio = float(np.max(np.diag(out)[rest] / d0[rest], initial=1.0))
     return out, ratio, ev
+
+
+def evidence_covariances(
+    blocks: Sequence[TelemetryBlock], beta: FloatArray, cov: FloatArray
+) -> tuple[FloatArray, list[float], list[FloatArray | None]]:
+    """:func:`evidence_covariance` of every block (one per target), each from ``cov``
+    itself, their widenings summed: a block's error information is read off the window's
+    covariance, not off one already widened for another block, and the order of the
+    blocks does not matter. Also each block's ratio and table."""
+    out = cov
+    ratios: list[float] = []
+    tables: list[FloatArray | None] = []
+    for tb in blocks:
+        wider, ratio, table = evidence_covariance(tb, beta, cov)
+        out = out + (wider - cov)
+        ratios.append(ratio)
+        tables.append(table)
+    return out, ratios, tables
 
 
 def _mixture_moment(
