@@ -351,3 +351,29 @@ def test_two_targets_telemetry_widen_the_covariance_in_either_order():
     # one after the other (each reading the covariance the other widened) is not the same
     seq = evidence_covariance(blocks[1], beta, evidence_covariance(blocks[0], beta, cov)[0])[0]
     assert not np.allclose(seq, ab, rtol=1e-6)
+
+
+def test_the_covariance_keeps_half_on_the_windows_own_evidence():
+    """Predecessors whose evidence put the sizes at the floor (a slow error they could not
+    see) choose the sizes of a window that sees it, but its covariance still averages half
+    over its own evidence: at least half the widening its own evidence alone gives."""
+    tb = _block(False, False)
+    tb.declared_sigma = 1.0
+    n = tb.axis.n_coef
+    rng = np.random.default_rng(17)
+    _, _, h, g = _linear_data(rng, n, (3.0, 0.5), white=3.0)
+    sizes, own = evidence_grid(tb, h, g, np.zeros(3 * n))
+    floor = np.full_like(own, CARRY_WEIGHT * CARRY_FLOOR)
+    floor[:3, :3] = 0.0  # the predecessors: both sizes at most ~0.003 of the declared
+    tb.size_prior = floor
+    sizes, total = evidence_grid(tb, h, g, np.zeros(3 * n))
+    tb.prior_sigma = choose_sizes(sizes, total)
+    assert max(tb.prior_sigma) < 0.01  # chosen by the predecessors
+    cov, beta = _posterior(tb, h, g, 4.0)
+    carried, ratio, table = evidence_covariance(tb, beta, cov)
+    # passed on: own and carried (a log evidence is known up to a constant)
+    assert np.allclose(table - table.max(), total - total.max(), atol=1e-6)
+    tb.size_prior = None
+    alone, ratio_own, _ = evidence_covariance(tb, beta, cov)
+    assert ratio_own > 10.0
+    assert np.trace(carried - cov) >= 0.45 * np.trace(alone - cov)

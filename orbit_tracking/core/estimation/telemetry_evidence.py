@@ -38,6 +38,10 @@ window to the next, so each window adds the log evidence of its predecessors
 (:func:`carried_evidence`, at :data:`CARRY_WEIGHT`) to its own before choosing, and
 starts from the sizes the previous window ended with; it passes the sum on. A window
 with data of its own is hardly moved by it; one without keeps what the pass has shown.
+The predecessors can be the ones that could not see the error (a random walk far radars
+watched over the first windows, seen only later): so the published covariance averages
+half over the window's own evidence and half over the sum (:func:`evidence_covariance`),
+as if either could be the right one.
 """
 
 from __future__ import annotations
@@ -272,8 +276,11 @@ def evidence_covariance(
     sizes, ev = evidence_grid(tb, h, g, e)
     if not np.isfinite(ev).any():
         return cov, 1.0, None
-    w = np.exp(np.where(np.isfinite(ev), ev - np.max(ev[np.isfinite(ev)]), -np.inf))
-    w /= w.sum()
+    w = _weights(ev)
+    if tb.size_prior is not None:  # half on the window's own evidence alone
+        own = ev - tb.size_prior
+        if np.isfinite(own).any():
+            w = 0.5 * w + 0.5 * _weights(own)
     moment = _mixture_moment(h, g, e, tb.axis.n_coef, sizes, w)
     extra = moment - c_ee
     val, vec = np.linalg.eigh(0.5 * (extra + extra.T))
@@ -288,6 +295,12 @@ def evidence_covariance(
     rest[sl] = False
     ratio = float(np.max(np.diag(out)[rest] / d0[rest], initial=1.0))
     return out, ratio, ev
+
+
+def _weights(ev: FloatArray) -> FloatArray:
+    """Normalised ``exp(ev)`` (zero where ``ev`` is not finite)."""
+    w = np.exp(np.where(np.isfinite(ev), ev - np.max(ev[np.isfinite(ev)]), -np.inf))
+    return w / w.sum()
 
 
 def evidence_covariances(
