@@ -243,16 +243,23 @@ def test_the_mixture_moment_by_woodbury_equals_the_sum_over_the_grid():
     assert np.allclose(_mixture_moment(h, g, e, n_coef, sizes, w), want, rtol=1e-9, atol=1e-12)
 
 
+def _slow_error_grid(declared, seed, white):
+    """A block declared at ``declared`` m, data on a slow error of sizes (3, 0.5) seen with
+    rows of noise ``white``, and the grid's sizes and log evidence."""
+    tb = _block(False, False)
+    tb.declared_sigma = declared
+    n = tb.axis.n_coef
+    _, _, h, g = _linear_data(np.random.default_rng(seed), n, (3.0, 0.5), white=white)
+    sizes, ev = evidence_grid(tb, h, g, np.zeros(3 * n))
+    return tb, h, g, sizes, ev
+
+
 def test_a_window_inherits_the_evidence_on_the_sizes_of_its_predecessors():
     """The carried table is the last window's relative log evidence at half weight, with a
     floor; read between grid points it is interpolated; a telemetry whose declared sigma
     changed starts afresh."""
-    tb = _block(False, False)
-    tb.declared_sigma = 2.0
+    tb, h, g, sizes, ev = _slow_error_grid(2.0, 11, 0.01)
     n = tb.axis.n_coef
-    rng = np.random.default_rng(11)
-    _, _, h, g = _linear_data(rng, n, (3.0, 0.5), white=0.01)
-    sizes, ev = evidence_grid(tb, h, g, np.zeros(3 * n))
     ev[0, 0] = -np.inf
     carried = carried_evidence((2.0, ev), 2.0)
     assert carried is not None and carried.max() == 0.0
@@ -357,12 +364,8 @@ def test_the_covariance_keeps_half_on_the_windows_own_evidence():
     """Predecessors whose evidence put the sizes at the floor (a slow error they could not
     see) choose the sizes of a window that sees it, but its covariance still averages half
     over its own evidence: at least half the widening its own evidence alone gives."""
-    tb = _block(False, False)
-    tb.declared_sigma = 1.0
+    tb, h, g, sizes, own = _slow_error_grid(1.0, 17, 3.0)
     n = tb.axis.n_coef
-    rng = np.random.default_rng(17)
-    _, _, h, g = _linear_data(rng, n, (3.0, 0.5), white=3.0)
-    sizes, own = evidence_grid(tb, h, g, np.zeros(3 * n))
     floor = np.full_like(own, CARRY_WEIGHT * CARRY_FLOOR)
     floor[:3, :3] = 0.0  # the predecessors: both sizes at most ~0.003 of the declared
     tb.size_prior = floor

@@ -233,12 +233,14 @@ def _estimate_once(
     def problem_on_selections() -> Problem:
         sols = {t: (s.trajectory, s.coef) for t, s in selections.items()}
         built = Problem(obs, sols, cfg, t0, t1, tel_events=events)
-        for tb in built.telemetry if cfg.estimate_telemetry_error and previous else ():
-            prev = previous.get(tb.target) if previous else None
-            tb.size_prior = carried_evidence(
-                None if prev is None else prev.telemetry_size_evidence, tb.declared_sigma
-            )
-            if tb.size_prior is not None and prev is not None and prev.telemetry_error_sigma:
+        if not (cfg.estimate_telemetry_error and previous):
+            return built
+        for tb in built.telemetry:
+            prev = previous.get(tb.target)
+            if prev is None:
+                continue
+            tb.size_prior = carried_evidence(prev.telemetry_size_evidence, tb.declared_sigma)
+            if tb.size_prior is not None and prev.telemetry_error_sigma:
                 tb.prior_sigma = prev.telemetry_error_sigma  # start where it ended
         return built
 

@@ -126,12 +126,18 @@ def evidence_grid(
 ) -> tuple[FloatArray, FloatArray]:
     """The sizes tried (``(k,)`` [m], for level and step alike) and the log evidence of
     each pair, ``(k, k)`` indexed ``[level, step]``."""
-    lo, hi = (k * tb.declared_sigma for k in ERROR_SIGMA_RANGE)
-    sizes = np.geomspace(lo, hi, EVIDENCE_GRID)
+    sizes = _grid(tb)
     ev = evidence_table(h, g, e, tb.axis.n_coef, sizes, sizes)
     if tb.size_prior is not None:
         ev = ev + tb.size_prior
     return sizes, ev
+
+
+def _grid(tb: TelemetryBlock) -> FloatArray:
+    """The sizes of the grid [m] (for level and step alike): :data:`EVIDENCE_GRID` points
+    spaced evenly in their logarithm over :data:`ERROR_SIGMA_RANGE` of the declared sigma."""
+    lo, hi = (k * tb.declared_sigma for k in ERROR_SIGMA_RANGE)
+    return np.geomspace(lo, hi, EVIDENCE_GRID)
 
 
 def carried_evidence(
@@ -168,10 +174,8 @@ def _prior_at(tb: TelemetryBlock, levels: FloatArray, steps: FloatArray) -> Floa
     logarithms; zero without one)."""
     if tb.size_prior is None:
         return np.zeros((levels.size, steps.size))
-    lo, hi = (math.log(k * tb.declared_sigma) for k in ERROR_SIGMA_RANGE)
-    grid = np.linspace(lo, hi, EVIDENCE_GRID)
-    a = np.clip(np.log(levels), lo, hi)
-    b = np.clip(np.log(steps), lo, hi)
+    grid = np.log(_grid(tb))  # np.interp holds the end values beyond it
+    a, b = np.log(levels), np.log(steps)
     by_level = np.array([np.interp(b, grid, row) for row in tb.size_prior])  # (grid, steps)
     return np.array([np.interp(a, grid, col) for col in by_level.T]).T
 
