@@ -1,5 +1,7 @@
 """The station rows of the Gauss-Newton Jacobian (``_StationBlock.jacobian``) against the
-sparse products they replace: the same numbers to the last bit and the same sparsity."""
+sparse products they replace: the same numbers to the last bit and the same sparsity; and
+the normal matrix built from such a Jacobian (``scaling.normal_matrix``) against the
+sparse product it replaces."""
 
 from __future__ import annotations
 
@@ -10,6 +12,7 @@ from scipy.spatial.transform import Rotation
 
 from orbit_tracking.core.estimation.bspline import SplineAxis, SplineTrajectory
 from orbit_tracking.core.estimation.problem import _row_contract, _StationBlock
+from orbit_tracking.core.estimation.scaling import normal_matrix
 from orbit_tracking.core.estimation.telemetry_block import shift_columns
 
 
@@ -67,3 +70,24 @@ def test_station_rows_equal_the_sparse_products_bit_for_bit(rotation: np.ndarray
     want2 = _row_contract(hw[:, :, :3], b.pw) + _row_contract(hw[:, :, 3:], b.vw)
     want2 = shift_columns(want2[np.flatnonzero(use.ravel())], offset, n)
     assert b.jacobian(hw, use, offset, n).data.tobytes() == want2.data.tobytes()
+
+
+@pytest.mark.parametrize('full_rows', [0, 1, 40])
+def test_the_normal_matrix_equals_the_sparse_product(full_rows: int) -> None:
+    """A window's Jacobian: thin rows of a few coefficients each (as the station rows)
+    with ``full_rows`` rows over every column (as the jerk prior's square root), and an
+    empty row; ``J^T J`` equals the sparse product to rounding and stays symmetric."""
+    rng = np.random.default_rng(full_rows)
+    m, n, w = 3000, 300, 15
+    start = rng.integers(0, n - w, m)
+    cols = (start[:, None] + np.arange(w)).ravel()
+    rows = np.repeat(np.arange(m), w)
+    thin = sp.csr_matrix((rng.normal(size=m * w), (rows, cols)), shape=(m, n))
+    full = sp.csr_matrix(rng.normal(size=(full_rows, n)) * 1e3)
+    jac = sp.vstack([thin, full, sp.csr_matrix((1, n))]).tocsr()
+    jac = jac[rng.permutation(jac.shape[0])]
+    ref = (jac.T @ jac).toarray()
+    got = normal_matrix(jac)
+    assert got.shape == (n, n)
+    np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-9 * np.abs(ref).max())
+    np.testing.assert_array_equal(got, got.T)

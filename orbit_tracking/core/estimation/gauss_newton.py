@@ -33,7 +33,7 @@ from numpy.typing import NDArray
 from orbit_tracking.core.estimation.config import EstimationError, EstimatorConfig
 from orbit_tracking.core.estimation.priors import reestimate_priors
 from orbit_tracking.core.estimation.problem import ROBUST_KINDS, GateKey, Problem
-from orbit_tracking.core.estimation.scaling import jacobi_scaled, scaled_solve
+from orbit_tracking.core.estimation.scaling import jacobi_scaled, normal_matrix, scaled_solve
 from orbit_tracking.core.models.measurements import residual
 
 __all__ = [
@@ -171,7 +171,7 @@ def gauss_newton(prob: Problem, beta: FloatArray, cfg: EstimatorConfig) -> GnOut
     lam = 0.0
     for it in range(1, cfg.max_iterations + 1):
         assert jac is not None
-        n = (jac.T @ jac).toarray()
+        n = normal_matrix(jac)
         g = jac.T @ r
         step, dec = _gn_step(prob, beta, n, g)
         if dec <= cfg.convergence_decrement:
@@ -193,7 +193,7 @@ def gauss_newton(prob: Problem, beta: FloatArray, cfg: EstimatorConfig) -> GnOut
         r, jac, _ = prob.evaluate(beta, True)
         cost = float(r @ r)
     assert jac is not None
-    n = (jac.T @ jac).toarray()
+    n = normal_matrix(jac)
     dec = decrement(prob, beta, n, jac.T @ r)
     if dec <= cfg.convergence_decrement:
         return GnOutcome(beta, cost, cfg.max_iterations, tried, True, 'converged', dec)
@@ -452,14 +452,14 @@ def robust_warm_up(
         assert jac is not None
         plain = bool(np.all(w == 1.0))
         if plain:
-            n, g = (jac.T @ jac).toarray(), jac.T @ r
+            n, g = normal_matrix(jac), jac.T @ r
             step, dec = _gn_step(prob, beta, n, g)
             if dec <= cfg.convergence_decrement:
                 message, converged = 'converged', True  # the plain solve's own test
                 break
         else:
             jw = sp.diags(np.sqrt(w)) @ jac
-            n, g = (jw.T @ jw).toarray(), jac.T @ (w * r)
+            n, g = normal_matrix(jw), jac.T @ (w * r)
             step = _normal_solve(n, g)[0]
         iterations += 1
         # the plain solve's steps (gauss_newton), on the robust cost
@@ -480,7 +480,7 @@ def robust_warm_up(
     dec = math.nan
     if np.all(w == 1.0):
         assert jac is not None
-        dec = decrement(prob, beta, (jac.T @ jac).toarray(), jac.T @ r)
+        dec = decrement(prob, beta, normal_matrix(jac), jac.T @ r)
         if not converged and message == 'iteration limit':
             converged = dec <= cfg.convergence_decrement
     out = GnOutcome(beta, float(r @ r), iterations, halvings, converged, message, dec)
@@ -549,7 +549,7 @@ def covariance(
     r, jac, _ = prob.evaluate(beta, True)
     if jac is None:
         raise EstimationError('no measurement rows to estimate from')
-    n = (jac.T @ jac).toarray()
+    n = normal_matrix(jac)
     ns, d = jacobi_scaled(n)
     ev = np.linalg.eigvalsh(ns)
     cond = float(ev[-1] / ev[0]) if ev[0] > 0 else math.inf

@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 
 from orbit_tracking.core.estimation.config import EstimatorConfig
 from orbit_tracking.core.estimation.problem import Problem
-from orbit_tracking.core.estimation.scaling import jacobi_scaled
+from orbit_tracking.core.estimation.scaling import jacobi_scaled, normal_matrix
 from orbit_tracking.core.estimation.telemetry_block import TelemetryBlock
 from orbit_tracking.core.estimation.telemetry_evidence import (
     ERROR_SIGMA_RANGE,
@@ -55,7 +55,7 @@ def reestimate_priors(prob: Problem, beta: FloatArray, cfg: EstimatorConfig) -> 
     r, jac, _ = prob.evaluate(beta, True)
     if jac is None:
         return False
-    normal = (jac.T @ jac).toarray()
+    normal = normal_matrix(jac)
     changed = False
     if tels:
         d = np.sqrt(np.maximum(np.diag(normal), 1e-300))
