@@ -107,7 +107,11 @@ class EstimatorConfig:
         ``auto`` (default): ``derivative`` unless the velocity residuals of the solved
         window show an error of their own (a test at ``telemetry_velocity_alpha``).
     telemetry_velocity_error_spacing : float
-        Knot spacing [s] of ``w`` (piecewise linear).
+        Knot spacing [s] of ``w`` (piecewise linear) when it is added.
+    telemetry_velocity_error_min_spacing : float
+        The spacing of ``w`` is halved, down to this [s], while a score test on the
+        telemetry velocity residuals (at ``telemetry_velocity_alpha``) asks for a faster
+        ``w`` (a velocity error correlated over seconds, not tens of seconds).
     telemetry_velocity_alpha : float
         Significance of the test that switches ``auto`` to ``separate``, and of the test
         that adds time-tag delays.
@@ -222,6 +226,7 @@ class EstimatorConfig:
     telemetry_error_spacing: float = 15.0
     telemetry_velocity_error: str = 'auto'
     telemetry_velocity_error_spacing: float = 20.0
+    telemetry_velocity_error_min_spacing: float = 5.0
     telemetry_velocity_alpha: float = 1e-3
     telemetry_delays: str = 'auto'
     nonlinear_sigma: float = 1.0
@@ -298,6 +303,15 @@ class EstimatorConfig:
             )
         if not self.telemetry_velocity_error_spacing > 0.0:
             raise ValueError('telemetry_velocity_error_spacing must be > 0')
+        if (
+            not 0.0
+            < self.telemetry_velocity_error_min_spacing
+            <= (self.telemetry_velocity_error_spacing)
+        ):
+            raise ValueError(
+                'telemetry_velocity_error_min_spacing must lie in (0, '
+                'telemetry_velocity_error_spacing]'
+            )
         if self.telemetry_delays not in TELEMETRY_DELAYS:
             raise ValueError(
                 f'telemetry_delays must be one of {TELEMETRY_DELAYS}; '

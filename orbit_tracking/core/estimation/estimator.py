@@ -82,7 +82,10 @@ from orbit_tracking.core.estimation.telemetry_evidence import (
     carried_evidence,
     evidence_covariances,
 )
-from orbit_tracking.core.estimation.telemetry_velocity import velocity_error_test
+from orbit_tracking.core.estimation.telemetry_velocity import (
+    refine_velocity_error,
+    velocity_error_test,
+)
 from orbit_tracking.core.estimation.verdict import judge
 from orbit_tracking.core.models.measurements import residual
 
@@ -231,6 +234,7 @@ def _estimate_once(
     events = {t: s.events for t, s in selections.items()}
 
     def problem_on_selections() -> Problem:
+        assert cfg is not None  # (mypy: cfg is rebound below, to a finer velocity error)
         sols = {t: (s.trajectory, s.coef) for t, s in selections.items()}
         built = Problem(obs, sols, cfg, t0, t1, tel_events=events)
         if not (cfg.estimate_telemetry_error and previous):
@@ -351,6 +355,23 @@ def _estimate_once(
         )
     elif cfg.telemetry_velocity_error == 'separate' and prob.telemetry:
         tel_note += '; telemetry velocity error of its own (configured)'
+    while True:  # a faster separate velocity error while the residuals ask for it
+        finer, v_tests = refine_velocity_error(prob, out.beta, obs, cfg, t0, t1)
+        tel_note += ''.join(
+            f'; telemetry {t.target} velocity error knots every '
+            f'{cfg.telemetry_velocity_error_spacing / 2:g} s '
+            + ('asked for' if t.significant else 'not asked for')
+            + f' (test {t.statistic:.3g} vs {t.threshold:.3g}, {t.dof} dof)'
+            for t in v_tests
+        )
+        if finer is cfg:
+            break
+        prob, beta = rebuild(prob, out.beta, {}, {}, obs, finer, t0, t1)
+        cfg = finer
+        out, it2, h2 = solve(prob, beta, cfg, warm_up=False)
+        iterations += it2
+        halvings += h2
+        r, jac, cov, cond, singular = covariance(prob, out.beta)
     pruned = {tid: 0 for tid in selections}
     if cfg.prune_z > 0.0 and cfg.knot_method == 'sparse':
         # knots the measurements do not support go before the knot test adds any

@@ -483,11 +483,17 @@ def rebuild(
                 [tb_new.axis.fit(ts, vals[:, c], ridge=0.0) for c in range(3)], axis=1
             )
         beta_new[tb_new.offset : tb_new.offset + new_e.size] = new_e.ravel()
-        if tb_new.w_axis is not None and tb_old.w_axis is not None:  # same window, same w
+        if tb_new.w_axis is not None and tb_old.w_axis is not None:
             n_w = 3 * tb_old.w_axis.n_coef
             o_old = tb_old.offset + 3 * tb_old.axis.n_coef
             o_new = tb_new.offset + 3 * tb_new.axis.n_coef
-            beta_new[o_new : o_new + n_w] = beta[o_old : o_old + n_w]
+            old_w = beta[o_old : o_old + n_w]
+            if tb_new.w_axis.n_coef != tb_old.w_axis.n_coef:
+                # a finer w (its knots contain the old ones): piecewise linear, so its
+                # coefficients are the old error's values at its knots
+                sites = tb_new.w_axis.knots[1:-1]
+                old_w = tb_old.w_axis.evaluate(old_w.reshape(-1, 3), sites).ravel()
+            beta_new[o_new : o_new + old_w.size] = old_w
         if tb_new.delays and tb_old.delays:
             beta_new[tb_new.delay_offset : tb_new.delay_offset + 2] = beta[
                 tb_old.delay_offset : tb_old.delay_offset + 2

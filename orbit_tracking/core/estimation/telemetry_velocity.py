@@ -15,11 +15,20 @@ of the whitened residuals along ``w`` and ``S = J_w^T J_w - C^T (J^T J)^-1 C``, 
 J^T J_w``, what of ``w`` the other parameters cannot take. Under the one-source model it is
 chi-square with as many degrees of freedom as ``S`` has rank; above its
 ``1 - telemetry_velocity_alpha`` quantile the window is solved again with ``e' + w``.
+
+A velocity error of its own is often correlated over seconds (an INS or a Doppler loop,
+a Gauss-Markov error of a few seconds' time constant), which a ``w`` with knots 20 s apart
+cannot follow: the rest stays in the velocity rows as white noise by the noise
+re-estimation, and the ~100-times-more-precise velocity then makes the trajectory
+over-confident by its integral. :func:`refine_velocity_error` asks the same question of
+``w`` at half the spacing (the same score test, for the finer ``w`` with the solved one
+mapped onto it), and halves while the residuals ask for it, down to
+``telemetry_velocity_error_min_spacing``.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -35,6 +44,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     'ScoreTest',
+    'refine_velocity_error',
     'VelocityErrorTest',
     'quadratic_score',
     'score_statistic',
@@ -103,6 +113,48 @@ def velocity_error_test(
             )
         )
     return out
+
+
+def refine_velocity_error(
+    prob: Problem,
+    beta: FloatArray,
+    obs: Observations,
+    cfg: EstimatorConfig,
+    t0: float,
+    t1: float,
+) -> tuple[EstimatorConfig, list[ScoreTest]]:
+    """The spacing of the separate velocity errors ``w`` of ``prob`` (solved at ``beta``)
+    the residuals ask for: ``cfg`` with ``telemetry_velocity_error_spacing`` halved once if
+    the score test for ``w`` at half the spacing, the solved ``w`` mapped onto it, is
+    significant for some block (at ``telemetry_velocity_alpha``), else ``cfg`` unchanged;
+    and the tests made. The caller solves again on the returned spacing and asks again."""
+    from orbit_tracking.core.estimation.knot_refinement import rebuild
+
+    spacing = cfg.telemetry_velocity_error_spacing / 2.0
+    blocks = [tb for tb in prob.telemetry if tb.w_axis is not None]
+    if not blocks or spacing < cfg.telemetry_velocity_error_min_spacing * (1.0 - 1e-9):
+        return cfg, []
+    finer = replace(cfg, telemetry_velocity_error_spacing=spacing)
+    aug, beta_a = rebuild(prob, beta, {}, {}, obs, finer, t0, t1)
+    coarse = {tb.target: tb.w_axis.n_coef for tb in blocks if tb.w_axis is not None}
+    out: list[ScoreTest] = []
+    for tb in aug.telemetry:
+        if tb.w_axis is None or tb.target not in coarse:
+            continue
+        o = tb.offset + 3 * tb.axis.n_coef
+        score = score_statistic(aug, beta_a, np.arange(o, o + 3 * tb.w_axis.n_coef))
+        if score is None:
+            continue
+        # the finer w contains the solved one, along which the gradient is zero (it is
+        # solved): the statistic is the test of the added directions alone, with their
+        # degrees of freedom (the score test is invariant to how the block is spanned)
+        stat, dof = score[0], score[1] - 3 * coarse[tb.target]
+        if dof < 1:
+            continue
+        out.append(
+            ScoreTest(tb.target, stat, float(chi2_isf(cfg.telemetry_velocity_alpha, dof)), dof)
+        )
+    return (finer if any(t.significant for t in out) else cfg), out
 
 
 def score_statistic(
