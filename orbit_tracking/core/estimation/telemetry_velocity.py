@@ -41,6 +41,7 @@ from orbit_tracking.core.estimation.scaling import scaled_solve
 
 if TYPE_CHECKING:
     from orbit_tracking.core.estimation.problem import Problem
+    from orbit_tracking.core.estimation.telemetry_block import TelemetryBlock
 
 __all__ = [
     'ScoreTest',
@@ -83,6 +84,13 @@ class VelocityErrorTest(ScoreTest):
         return self.significant
 
 
+def _w_score(aug: Problem, beta: FloatArray, tb: TelemetryBlock) -> tuple[float, int] | None:
+    """:func:`score_statistic` for the separate velocity error ``w`` of block ``tb``."""
+    assert tb.w_axis is not None
+    o = tb.offset + 3 * tb.axis.n_coef
+    return score_statistic(aug, beta, np.arange(o, o + 3 * tb.w_axis.n_coef))
+
+
 def velocity_error_test(
     prob: Problem,
     beta: FloatArray,
@@ -101,9 +109,7 @@ def velocity_error_test(
             continue
         aug, beta_a = rebuild(prob, beta, {}, {}, obs, cfg, t0, t1, {tb.target: True})
         ta = next(b for b in aug.telemetry if b.target == tb.target)
-        assert ta.w_axis is not None
-        o = ta.offset + 3 * ta.axis.n_coef
-        score = score_statistic(aug, beta_a, np.arange(o, o + 3 * ta.w_axis.n_coef))
+        score = _w_score(aug, beta_a, ta)
         if score is None:
             continue
         stat, dof = score
@@ -141,8 +147,7 @@ def refine_velocity_error(
     for tb in aug.telemetry:
         if tb.w_axis is None or tb.target not in coarse:
             continue
-        o = tb.offset + 3 * tb.axis.n_coef
-        score = score_statistic(aug, beta_a, np.arange(o, o + 3 * tb.w_axis.n_coef))
+        score = _w_score(aug, beta_a, tb)
         if score is None:
             continue
         # the finer w contains the solved one, along which the gradient is zero (it is
