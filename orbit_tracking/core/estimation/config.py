@@ -303,11 +303,8 @@ class EstimatorConfig:
             )
         if not self.telemetry_velocity_error_spacing > 0.0:
             raise ValueError('telemetry_velocity_error_spacing must be > 0')
-        if (
-            not 0.0
-            < self.telemetry_velocity_error_min_spacing
-            <= (self.telemetry_velocity_error_spacing)
-        ):
+        min_spacing = self.telemetry_velocity_error_min_spacing
+        if not 0.0 < min_spacing <= self.telemetry_velocity_error_spacing:
             raise ValueError(
                 'telemetry_velocity_error_min_spacing must lie in (0, '
                 'telemetry_velocity_error_spacing]'

@@ -356,7 +356,7 @@ def _estimate_once(
     elif cfg.telemetry_velocity_error == 'separate' and prob.telemetry:
         tel_note += '; telemetry velocity error of its own (configured)'
     while True:  # a faster separate velocity error while the residuals ask for it
-        finer, v_tests = refine_velocity_error(prob, out.beta, obs, cfg, t0, t1)
+        v_tests, finer = refine_velocity_error(prob, out.beta, obs, cfg, t0, t1)
         tel_note += ''.join(
             f'; telemetry {t.target} velocity error knots every '
             f'{cfg.telemetry_velocity_error_spacing / 2:g} s '
@@ -364,10 +364,9 @@ def _estimate_once(
             + f' (test {t.statistic:.3g} vs {t.threshold:.3g}, {t.dof} dof)'
             for t in v_tests
         )
-        if finer is cfg:
+        if finer is None:
             break
-        prob, beta = rebuild(prob, out.beta, {}, {}, obs, finer, t0, t1)
-        cfg = finer
+        cfg, prob, beta = finer  # the problem the test was made on
         out, it2, h2 = solve(prob, beta, cfg, warm_up=False)
         iterations += it2
         halvings += h2

@@ -128,21 +128,20 @@ def refine_velocity_error(
     cfg: EstimatorConfig,
     t0: float,
     t1: float,
-) -> tuple[EstimatorConfig, list[ScoreTest]]:
-    """The spacing of the separate velocity errors ``w`` of ``prob`` (solved at ``beta``)
-    the residuals ask for: ``cfg`` with ``telemetry_velocity_error_spacing`` halved once if
-    the score test for ``w`` at half the spacing, the solved ``w`` mapped onto it, is
-    significant for some block (at ``telemetry_velocity_alpha``), else ``cfg`` unchanged;
-    and the tests made. The caller solves again on the returned spacing and asks again."""
+) -> tuple[list[ScoreTest], tuple[EstimatorConfig, Problem, FloatArray] | None]:
+    """The score tests, for every separate velocity error ``w`` of ``prob`` (solved at
+    ``beta``), of a ``w`` at half the spacing with the solved one mapped onto it; and, if
+    one is significant (at ``telemetry_velocity_alpha``), ``cfg`` with the halved
+    ``telemetry_velocity_error_spacing`` and the problem on it with its start (else None).
+    The caller solves that problem and asks again."""
     from orbit_tracking.core.estimation.knot_refinement import rebuild
 
     spacing = cfg.telemetry_velocity_error_spacing / 2.0
-    blocks = [tb for tb in prob.telemetry if tb.w_axis is not None]
-    if not blocks or spacing < cfg.telemetry_velocity_error_min_spacing * (1.0 - 1e-9):
-        return cfg, []
+    coarse = {tb.target: tb.w_axis.n_coef for tb in prob.telemetry if tb.w_axis is not None}
+    if not coarse or spacing < cfg.telemetry_velocity_error_min_spacing * (1.0 - 1e-9):
+        return [], None
     finer = replace(cfg, telemetry_velocity_error_spacing=spacing)
     aug, beta_a = rebuild(prob, beta, {}, {}, obs, finer, t0, t1)
-    coarse = {tb.target: tb.w_axis.n_coef for tb in blocks if tb.w_axis is not None}
     out: list[ScoreTest] = []
     for tb in aug.telemetry:
         if tb.w_axis is None or tb.target not in coarse:
@@ -159,7 +158,7 @@ def refine_velocity_error(
         out.append(
             ScoreTest(tb.target, stat, float(chi2_isf(cfg.telemetry_velocity_alpha, dof)), dof)
         )
-    return (finer if any(t.significant for t in out) else cfg), out
+    return out, ((finer, aug, beta_a) if any(t.significant for t in out) else None)
 
 
 def score_statistic(
