@@ -227,9 +227,7 @@ def test_every_row_of_a_fused_problem_matches_central_differences_and_biases_too
     prob, _, beta0 = _problem_on(obs, traj.axes, cfg)
     assert prob.telemetry and prob.biases
     assert (prob.telemetry[0].w_axis is not None) == (velocity_error == 'separate')
-    beta = np.concatenate([beta0, np.zeros(prob.n - beta0.size)]) + rng.normal(
-        0.0, 0.5, prob.n
-    )
+    beta = np.concatenate([beta0, np.zeros(prob.n - beta0.size)]) + rng.normal(0.0, 0.5, prob.n)
     r, jac, tags = prob.evaluate(beta, True)
     assert {t[0] for t in tags} >= {'telemetry_position', 'telemetry_velocity', 'telemetry_prior'}
     jac = jac.toarray()
@@ -479,3 +477,33 @@ def test_knots_reselected_on_a_first_solution_from_fixes_stay_within_its_uncerta
     x, _ = sol.states(tr.time[m])
     assert np.mean(np.linalg.norm(x[:, :3] - tr.position[m], axis=1)) < 4.0
     assert np.mean(np.linalg.norm(x[:, 3:] - tr.velocity[m], axis=1)) < 1.2
+
+
+def test_the_jerk_prior_integrates_the_squared_jerk_through_an_event():
+    """The white-jerk prior's rows, away from events and near them (an event: a knot
+    repeated on every axis), make up the integral of the squared jerk over the whole
+    window, and the rows near the event hold the 2 s on each side of it. Left out, those
+    seconds are held by nothing but the data: at an aircraft's turn ramps (taken for
+    events) the spline rang by metres with sub-metre sigmas. The jerk of the degree-4
+    spline is linear between knots, so three Gauss-Legendre points per interval integrate
+    its square exactly; the prior's midpoint rule is within its own error of that."""
+    from orbit_tracking.core.estimation.motion_rows import JERK_EVENT_MARGIN, jerk_rows
+
+    traj, _ = _truth_spline([3.0, 6.0, 9.0, 9.0, 12.0, 15.0])
+    x, w = np.polynomial.legendre.leggauss(3)
+
+    def integral(edges):
+        half = 0.5 * np.diff(edges)
+        t = (0.5 * (edges[1:] + edges[:-1])[:, None] + half[:, None] * x[None, :]).ravel()
+        jerk = (traj.world_design(t, 3) @ c).reshape(-1, 3)
+        return float(np.sum((half[:, None] * w[None, :]).ravel() * np.sum(jerk**2, axis=1)))
+
+    rng = np.random.default_rng(5)
+    lo, hi = 9.0 - JERK_EVENT_MARGIN, 9.0 + JERK_EVENT_MARGIN
+    for _ in range(3):
+        c = rng.normal(size=traj.n_coef)
+        away = float(np.sum((jerk_rows(traj, 0.0, 20.0, 0.25) @ c) ** 2))
+        near = float(np.sum((jerk_rows(traj, 0.0, 20.0, 0.25, near_events=True) @ c) ** 2))
+        whole = integral(np.array([0.0, 3.0, 6.0, lo, 9.0, hi, 12.0, 15.0, 20.0]))
+        assert away + near == pytest.approx(whole, rel=1e-2)
+        assert near == pytest.approx(integral(np.array([lo, 9.0, hi])), rel=1e-2)

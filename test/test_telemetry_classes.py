@@ -32,7 +32,18 @@ GAP_LIMIT: dict[str, float] = {}
 """Gap RMS over its bound, where a class is known to be weaker than the default 3."""
 
 
-KNOWN_FAILING: dict[str, str] = {}
+_GAP_OVERCONFIDENT = (
+    'inside the incomplete segment the estimate is 0.1 m off for seconds (gap 1.6-1.9 x '
+    'its bound, NEES 7.4-8.9 against a band top of 5.1) with a covariance the size of the '
+    'bound, 0.03 m an axis; its worst states were 4.5-5.0 sigma off before the white-jerk '
+    'prior covered the seconds around events with a density of their own, and 5.0-5.3 '
+    'sigma after (the robustness families lost silent states with that change: '
+    'docs/BENCHMARKS.md)'
+)
+KNOWN_FAILING: dict[str, str] = {
+    'drift': _GAP_OVERCONFIDENT,
+    'separate_velocity': _GAP_OVERCONFIDENT,
+}
 """Classes known to fail, with the reason (strict xfail). time_skew was one until the
 events found in the telemetry were moved to its estimated velocity delay (its 43 silent
 states came from a staging placed 35 ms late, which pulled the delay estimate to 10.6 ms);

@@ -497,7 +497,7 @@ def _estimate_once(
             ),
             '' if tel is None else ('separate' if tel.w_axis is not None else 'derivative'),
             None if tel is None else tel.prior_sigma,
-            prob.jerk_q.get(tid),
+            prob.jerk_q.get((tid, False)),
             _delays(tel, out.beta, cov),
             manoeuvres[tid],
             size_evidence.get(tid),
@@ -541,8 +541,8 @@ def _estimate_once(
         if g is not None
     )
     msg += ''.join(
-        f'; target {tid} white-jerk prior {q:.3g} m^2/s^5'
-        for tid, q in sorted(prob.jerk_q.items())
+        f'; target {tid} white-jerk prior {q:.3g} m^2/s^5' + (' near events' if near else '')
+        for (tid, near), q in sorted(prob.jerk_q.items())
         if q is not None
     )
     if cfg.estimate_telemetry_error:

@@ -47,16 +47,22 @@ def thrust_normal(
 
 JERK_EVENT_MARGIN = 2.0
 """Seconds on each side of an event (a knot repeated on every axis: the acceleration jumps
-there) left out of the white-jerk prior: thrust builds up and tails off around it with a
-jerk far beyond the window's average."""
+there) whose part of the white-jerk prior has a density of its own: thrust builds up and
+tails off around a staging, and a turn's control ramp is entered, with a jerk far beyond
+the window's average."""
 
 
-def jerk_rows(traj: SplineTrajectory, t0: float, t1: float, step: float) -> FloatArray:
+def jerk_rows(
+    traj: SplineTrajectory, t0: float, t1: float, step: float, near_events: bool = False
+) -> FloatArray:
     """Rows ``M`` (rank of the penalty, n_coef) with ``|M c|^2`` the integral of the squared
-    jerk of ``traj`` over [t0, t1] (midpoint rule at ``step``), leaving out
-    :data:`JERK_EVENT_MARGIN` around its events: the square root of the penalty's nonzero
-    eigen-part, so that as pseudo-measurements they count as many degrees of freedom as
-    the penalty has rank."""
+    jerk of ``traj`` (midpoint rule at ``step``) over [t0, t1] away from its events, or
+    with ``near_events`` over the :data:`JERK_EVENT_MARGIN` around them: the square root
+    of the penalty's nonzero eigen-part, so that as pseudo-measurements they count as many
+    degrees of freedom as the penalty has rank. The two parts have densities of their own
+    (:mod:`.priors`). Left out altogether, the pieces near events were held by nothing but
+    the data; at an aircraft's turn ramps, which the event detection takes for events,
+    they rang by metres with sub-metre sigmas."""
     n = max(int(math.ceil((t1 - t0) / step)), 1)
     h = (t1 - t0) / n
     tg = t0 + h * (np.arange(n) + 0.5)
@@ -65,8 +71,12 @@ def jerk_rows(traj: SplineTrajectory, t0: float, t1: float, step: float) -> Floa
         k, counts = np.unique(ax.interior, return_counts=True)
         repeated.append(set(k[counts > 1].tolist()))
     events = np.array(sorted(set.intersection(*repeated)), dtype=float)
-    if events.size:
-        tg = tg[np.min(np.abs(tg[:, None] - events[None, :]), axis=1) > JERK_EVENT_MARGIN]
+    near = (
+        np.min(np.abs(tg[:, None] - events[None, :]), axis=1) <= JERK_EVENT_MARGIN
+        if events.size
+        else np.zeros(tg.size, dtype=bool)
+    )
+    tg = tg[near] if near_events else tg[~near]
     if not tg.size:
         return np.zeros((0, traj.n_coef))
     d3 = traj.world_design(tg, 3)

@@ -96,31 +96,33 @@ def _jerk_densities(prob: Problem, beta: FloatArray, normal: FloatArray, grad: F
     """The white-jerk densities of every trajectory, iterated to their fixed point on the
     problem linearised at ``beta`` (one evidence update per solve would leave them far
     off): the data's normal matrix ``N_d`` and gradient ``g_d`` without the jerk rows, and
-    for each target in turn the pencil ``(P, N_d + P / q0)`` diagonalised once (``P`` its
-    penalty, ``q0`` its density so far, the other targets' priors held), in which the
-    solution, ``tr(P C)`` and the penalty are sums over its eigenvalues for any ``q``. A
-    density not set yet starts from the mean squared jerk of ``beta``."""
+    for each block in turn (a target's prior away from its events, and near them) the
+    pencil ``(P, N_d + P / q0)`` diagonalised once (``P`` its penalty, ``q0`` its density
+    so far, the other blocks held), in which the solution, ``tr(P C)`` and the penalty
+    are sums over its eigenvalues for any ``q``. A density not set yet starts from the
+    mean squared jerk of ``beta``. The density near events is never below the one away
+    from them: it is there to let a staging's or a turn's jerk through, not to stiffen."""
     blocks = []
-    for tid, mj in prob.jerk.items():
+    for key, mj in prob.jerk.items():
         if mj.shape[0]:
-            o = prob.offsets[tid]
-            sl = slice(o, o + prob.trajs[tid].n_coef)
-            blocks.append((tid, sl, mj.shape[0], mj.T @ mj))
+            o = prob.offsets[key[0]]
+            sl = slice(o, o + prob.trajs[key[0]].n_coef)
+            blocks.append((key, sl, mj.shape[0], mj.T @ mj))
     if not blocks:
         return False
     n_d, g_d = normal.copy(), grad.copy()
-    q: dict[int, float] = {}
-    for tid, sl, rank, pen in blocks:
-        old = prob.jerk_q[tid]
+    q: dict[tuple[int, bool], float] = {}
+    for key, sl, rank, pen in blocks:
+        old = prob.jerk_q[key]
         if old is not None:  # take the prior's rows out again
             n_d[sl, sl] -= pen / old
             g_d[sl] += pen @ beta[sl] / old
-        q[tid] = (
+        q[key] = (
             old if old is not None else max(float(beta[sl] @ pen @ beta[sl]) / rank, JERK_Q_FLOOR)
         )
     for _ in range(2 if len(blocks) > 1 else 1):
-        for tid, sl, rank, pen in blocks:
-            q0 = q[tid]
+        for key, sl, rank, pen in blocks:
+            q0 = q[key]
             a = n_d.copy()
             for other, sl2, _, pen2 in blocks:
                 a[sl2, sl2] += pen2 / q[other]
@@ -128,7 +130,7 @@ def _jerk_densities(prob: Problem, beta: FloatArray, normal: FloatArray, grad: F
             p_full[sl, sl] = pen / q0
             g_t = g_d.copy()  # the gradient of the data and the other targets' priors
             for other, sl2, _, pen2 in blocks:
-                if other != tid:
+                if other != key:
                     g_t[sl2] -= pen2 @ beta[sl2] / q[other]
             a_s, d = jacobi_scaled(a, 1e-10)
             try:
@@ -150,12 +152,14 @@ def _jerk_densities(prob: Problem, beta: FloatArray, normal: FloatArray, grad: F
                 value = new
                 if done:
                     break
-            q[tid] = value
+            if key[1]:  # near events: never held tighter than the rest of the trajectory
+                value = max(value, q.get((key[0], False), value))
+            q[key] = value
     changed = False
-    for tid, value in q.items():
-        old = prob.jerk_q[tid]
+    for key, value in q.items():
+        old = prob.jerk_q[key]
         changed |= old is None or abs(value - old) > JERK_Q_TOLERANCE * old
-        prob.jerk_q[tid] = value
+        prob.jerk_q[key] = value
     return changed
 
 

@@ -284,14 +284,18 @@ class Problem:
                         np.asarray(np.isfinite(fx.position).all(axis=1)),
                     )
                 )
-        # the white-jerk prior: per target, rows M with |M c|^2 = int |p'''|^2 dt, and its
-        # density q (None until the first solve has estimated it: no rows before)
-        self.jerk: dict[int, FloatArray] = {}
-        self.jerk_q: dict[int, float | None] = {}
+        # the white-jerk prior: per target and part (key (tid, near_events)), rows M with
+        # |M c|^2 = int |p'''|^2 dt over the part, and its density q (None until the
+        # first solve has estimated it: no rows before)
+        self.jerk: dict[tuple[int, bool], FloatArray] = {}
+        self.jerk_q: dict[tuple[int, bool], float | None] = {}
         if cfg.jerk_prior:
             for tid, traj in self.trajs.items():
-                self.jerk[tid] = jerk_rows(traj, t0, t1, cfg.jerk_grid)
-                self.jerk_q[tid] = None
+                for near in (False, True):
+                    mj = jerk_rows(traj, t0, t1, cfg.jerk_grid, near)
+                    if mj.shape[0] or not near:
+                        self.jerk[tid, near] = mj
+                        self.jerk_q[tid, near] = None
         # the thrust-along-velocity constraint: designs on a grid per target
         self.dynamics: list[tuple[int, sp.csr_matrix, sp.csr_matrix, sp.csr_matrix]] = []
         if cfg.thrust_along_velocity > 0.0:
@@ -479,8 +483,8 @@ class Problem:
                 jac.append(shift_columns(jm, self.offsets[tid], self.n))
                 z = np.zeros((c.size, 3))
                 rows.append((-1, np.zeros(c.size), z, z, False))
-        for tid, mj in self.jerk.items():
-            qj = self.jerk_q[tid]
+        for (tid, near), mj in self.jerk.items():
+            qj = self.jerk_q[tid, near]
             if qj is None or not mj.shape[0]:
                 continue
             w = 1.0 / math.sqrt(qj)
