@@ -151,6 +151,9 @@ def test_offline_estimate_writes_the_contract_trajectory_within_its_sigmas(
         assert set(w['telemetry_velocity_error']) == {0}, w
         assert w['telemetry_velocity_error'][0] in ('derivative', 'separate')
         assert 'isotropic_spans' in w
+        q, q_events = w['jerk_density'], w['jerk_density_near_events']
+        assert set(q) == {0} and q[0] > 0.0 and set(q_events) <= {0}, w
+        assert all(v >= q[0] for v in q_events.values()), w  # never stiffer near events
     ev = summary['evaluation'][0]
     assert ev['inside_gaps']['n'] == 61 and ev['outside_gaps']['n'] == 240
     assert ev['outside_gaps']['rms_position_m'] < 0.2

@@ -250,11 +250,17 @@ def _window_summary(e: Estimate) -> dict[str, object]:
             for tid, sol in sorted(e.targets.items())
             if sol.telemetry_error_sigma is not None
         },
-        # the density of the white-jerk prior [m^2/s^5] estimated per target
+        # the density of the white-jerk prior [m^2/s^5] estimated per target, away from
+        # its events and within 2 s of them
         'jerk_density': {
             int(tid): float(sol.jerk_density)
             for tid, sol in sorted(e.targets.items())
             if sol.jerk_density is not None
+        },
+        'jerk_density_near_events': {
+            int(tid): float(sol.jerk_density_near_events)
+            for tid, sol in sorted(e.targets.items())
+            if sol.jerk_density_near_events is not None
         },
         # where the covariance was made isotropic (beyond the linear range)
         'isotropic_spans': {

@@ -501,6 +501,7 @@ def _estimate_once(
             _delays(tel, out.beta, cov),
             manoeuvres[tid],
             size_evidence.get(tid),
+            prob.jerk_q.get((tid, True)),
         )
     factors = {
         (b.station, f): float(b.factor[j])

@@ -128,7 +128,7 @@ def _jerk_densities(prob: Problem, beta: FloatArray, normal: FloatArray, grad: F
                 a[sl2, sl2] += pen2 / q[other]
             p_full = np.zeros_like(a)
             p_full[sl, sl] = pen / q0
-            g_t = g_d.copy()  # the gradient of the data and the other targets' priors
+            g_t = g_d.copy()  # the gradient of the data and the other blocks' priors
             for other, sl2, _, pen2 in blocks:
                 if other != key:
                     g_t[sl2] -= pen2 @ beta[sl2] / q[other]

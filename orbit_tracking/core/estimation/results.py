@@ -40,7 +40,9 @@ class TargetSolution:
     from one coefficient to the next (the declared position sigma, or estimated from the
     data; None without telemetry fused).
     ``jerk_density`` is the white-jerk prior's density [m^2/s^5] estimated for this
-    trajectory (None without the prior). ``telemetry_delays`` are the telemetry's
+    trajectory away from its events, ``jerk_density_near_events`` the one within
+    :data:`~orbit_tracking.core.estimation.motion_rows.JERK_EVENT_MARGIN` of them (None
+    without the prior, or without events). ``telemetry_delays`` are the telemetry's
     estimated time-tag delays of position and velocity and their sigmas, ``(d_p, sigma,
     d_v, sigma)`` [s] (None when the window did not estimate them). ``manoeuvres`` is the
     consider term of the manoeuvres its incomplete segments may hide, which :meth:`states`
@@ -67,6 +69,7 @@ class TargetSolution:
     telemetry_delays: tuple[float, float, float, float] | None = None
     manoeuvres: GapManoeuvres | None = None
     telemetry_size_evidence: tuple[float, FloatArray] | None = None
+    jerk_density_near_events: float | None = None
 
     @property
     def t0(self) -> float:
