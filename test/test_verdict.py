@@ -234,21 +234,30 @@ def test_a_state_the_data_leave_undetermined_is_not_published_as_a_confident_wro
     """Robustness draw ascent 5 without telemetry: in its incomplete segment only a CW
     radar measures, and the first window's states there were 220-1 100 m off while 5.7-160
     sigma (Mahalanobis) of a linearised covariance with a 1.6-7 km axis: every one a
-    silent failure. Beyond the linear range the covariance is now its largest sigma in
-    every direction, and the message says where."""
+    silent failure. Beyond the linear range the covariance is its largest sigma in every
+    direction, and the message says where. Since the white-jerk prior holds the seconds
+    around the staging (with a density of their own) the segment's states are within
+    tens of metres and the default linear-range test no longer fires on this window; with
+    a stricter one (0.3 sigma) it does, around the staging, and the states stay honest."""
     from orbit_tracking.core.metrics import nees
     from orbit_tracking.tools.bench.robustness_draw import _case
 
     case = _case('ascent', 5)
     t0, t1 = 0.0292, 60.0292
-    est = estimate(case.obs_kf, t0, t1, EstimatorConfig(use_telemetry=False))
-    assert est.success, est.message
-    assert 'beyond the linear range' in est.message
-    sol = est.targets[0]
     idx = np.flatnonzero((case.truth_t >= t0) & (case.truth_t <= t1))
-    x, cov = sol.states(case.truth_t[idx])
-    d2 = nees(x[:, :3] - case.truth_x[idx, :3], cov[:, :3, :3])
-    assert np.max(d2) < 25.0, np.max(d2)
+    for strict in (False, True):
+        cfg = EstimatorConfig(use_telemetry=False, nonlinear_sigma=0.3 if strict else 1.0)
+        est = estimate(case.obs_kf, t0, t1, cfg)
+        assert est.success, est.message
+        sol = est.targets[0]
+        x, cov = sol.states(case.truth_t[idx])
+        err = x[:, :3] - case.truth_x[idx, :3]
+        d2 = nees(err, cov[:, :3, :3])
+        assert np.max(d2) < 25.0, np.max(d2)
+        assert np.max(np.linalg.norm(err, axis=1)) < 100.0
+        if strict:
+            assert 'beyond the linear range' in est.message
+            assert any(a < 40.63 < b for a, b in sol.isotropic_spans), sol.isotropic_spans
 
 
 def test_a_numerical_breakdown_is_a_failed_window_not_a_crash(monkeypatch):
