@@ -127,3 +127,34 @@ def test_bench_command_takes_the_robustness_options():
         5,
         2,
     )
+
+
+def test_a_velocity_off_by_more_than_five_sigma_is_a_silent_failure_too():
+    """The issue's silent failure is a *state* more than 5 sigma off while its window
+    claims success: a velocity that is counts, though its position is right, and a state
+    off in both counts once."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from orbit_tracking.tools.bench.robustness_draw import OURS, _score
+
+    t = 0.1 * np.arange(50)
+    case = SimpleNamespace(truth_t=t, truth_x=np.zeros((50, 6)), in_gap=np.zeros(50, bool))
+    bound = SimpleNamespace(position=lambda sel: 1.0, velocity=lambda sel: 1.0)
+    x = np.zeros((50, 6))
+    x[10, 3] = 0.6  # velocity 6 sigma off, position right
+    x[20, 0], x[20, 4] = 0.6, 0.6  # both off
+    x[30, 3] = 0.4  # 4 sigma: not silent
+    cov = np.broadcast_to(0.01 * np.eye(6), (50, 6, 6)).copy()
+    m = _score(
+        case,
+        OURS,
+        t,
+        x,
+        cov,
+        {'stations+telemetry': bound},
+        lambda tt: np.ones(tt.size, bool),
+        0.1,
+    )
+    assert (m.silent, m.silent_velocity, m.silent_states) == (1, 2, 2)

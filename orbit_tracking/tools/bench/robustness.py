@@ -171,7 +171,12 @@ def _line(i: int, n: int, r: DrawResult) -> str:
         else:
             parts.append(
                 f'{m.method} gap {_f(m.pos_ratio_gap, ".2f")}x out {_f(m.pos_ratio_out, ".2f")}x'
-                + (f' silent {m.silent}' if m.silent else '')
+                + (
+                    f' silent {m.silent_states} ({m.silent} position, '
+                    f'{m.silent_velocity} velocity)'
+                    if m.silent_states
+                    else ''
+                )
                 + (
                     f' windows failed {m.windows_failed + m.windows_raised}'
                     if m.windows_failed + m.windows_raised
@@ -307,8 +312,8 @@ def _accuracy_table(rs: Sequence[DrawResult]) -> list[str]:
 def _health_table(rs: Sequence[DrawResult]) -> list[str]:
     lines = [
         '| method | mean NEES | NEES in its 95 % band | coverage of the span | windows '
-        'unsuccessful / raised | silent failures (states) | wall per draw [s] | slowest '
-        'window [s] |',
+        'unsuccessful / raised | silent failures (states: position or velocity; position / '
+        'velocity alone) | wall per draw [s] | slowest window [s] |',
         '|---|---|---|---|---|---|---|---|',
     ]
     for name in METHODS:
@@ -318,7 +323,8 @@ def _health_table(rs: Sequence[DrawResult]) -> list[str]:
             f'{_share([m.nees_in_band for m in ok])} | '
             f'{_mpw([m.coverage for m in ok])} | '
             f'{sum(m.windows_failed for m in ok)} / {sum(m.windows_raised for m in ok)} of '
-            f'{sum(m.windows for m in ok)} | {sum(m.silent for m in ok)} of '
+            f'{sum(m.windows for m in ok)} | {sum(m.silent_states for m in ok)} '
+            f'({sum(m.silent for m in ok)} / {sum(m.silent_velocity for m in ok)}) of '
             f'{sum(m.states for m in ok)} | {_mpw([m.wall_s for m in ok], ".1f")} | '
             f'{_mpw([m.max_window_s for m in ok], ".1f")} |'
         )
@@ -348,7 +354,8 @@ def _targets(rs: Sequence[DrawResult]) -> list[str]:
     ours = [r.method(OURS) for r in rs]
     ran = [m for m in ours if m is not None and m.ran]
     n = len(rs)
-    silent = sum(m.silent for m in ran)
+    silent = sum(m.silent_states for m in ran)
+    silent_parts = (sum(m.silent for m in ran), sum(m.silent_velocity for m in ran))
     gap = [m.pos_ratio_gap <= 1.5 for m in ran if math.isfinite(m.pos_ratio_gap)]
     out = [m.pos_ratio_out <= 1.3 for m in ran if math.isfinite(m.pos_ratio_out)]
     band = [m.nees_in_band for m in ran]
@@ -359,7 +366,8 @@ def _targets(rs: Sequence[DrawResult]) -> list[str]:
     return [
         '| target of issue 14 (`ours`, the default) | this run |',
         '|---|---|',
-        f'| silent failures: 0 over >= 200 draws | {silent} over {n} draws'
+        f'| silent failures: 0 over >= 200 draws | {silent} states over {n} draws '
+        f'(position {silent_parts[0]}, velocity {silent_parts[1]})'
         + (f' ({failed} draws where `ours` did not run at all)' if failed else '')
         + ' |',
         f'| gap pos RMS <= 1.5 x CRB in >= 95 % of draws | {_share(gap)} |',
@@ -377,7 +385,7 @@ def _worst(rs: Sequence[DrawResult]) -> list[str]:
         if r.error or m is None or not m.ran:
             return math.inf
         ratios = [x for x in (m.pos_ratio_gap, m.pos_ratio_out) if math.isfinite(x)]
-        return max(ratios, default=0.0) + 1e3 * m.silent
+        return max(ratios, default=0.0) + 1e3 * m.silent_states
 
     worst = sorted(rs, key=badness, reverse=True)[:WORST_SHOWN]
     lines = []
@@ -391,7 +399,8 @@ def _worst(rs: Sequence[DrawResult]) -> list[str]:
             what = (
                 f'`ours` gap {_f(m.pos_rms_gap)} m ({_f(m.pos_ratio_gap, ".2f")} x CRB), '
                 f'outside {_f(m.pos_rms_out)} m ({_f(m.pos_ratio_out, ".2f")} x CRB), '
-                f'NEES {_f(m.nees_mean, ".2f")}, {m.silent} silent, '
+                f'NEES {_f(m.nees_mean, ".2f")}, {m.silent_states} silent '
+                f'({m.silent} position, {m.silent_velocity} velocity), '
                 f'{m.windows_failed + m.windows_raised} of {m.windows} windows failed'
                 + (f' ({m.window_messages[0][:160]})' if m.window_messages else '')
             )
