@@ -296,6 +296,7 @@ def _estimate_once(
                 'sparse',
                 (sol.origin, sol.rotation),
                 events=selections[tid].events,
+                kinks=selections[tid].kinks,
             )
             selections[tid] = replace(sel2, rough_source='fixes, then first solution')
         first, first_beta = prob, out.beta

@@ -512,6 +512,7 @@ def choose_knots_safely(
     baseline_spacing: float = 3.0,
     events: Sequence[float] | None = None,
     context: tuple[RoughTrajectory, float, float] | None = None,
+    kinks: Sequence[float] = (),
 ) -> KnotSelection:
     """:func:`choose_knots`, but a failed l1 problem never loses the window: the other
     installed interior-point solver is tried, then the densified knots are kept (the
@@ -527,7 +528,7 @@ def choose_knots_safely(
     knots = cfg.knots if fused else replace(cfg.knots, max_spacing=0.0)
     try:
         return choose_knots(
-            rough, t0, t1, segments, knots, method, frame, baseline_spacing, events, context
+            rough, t0, t1, segments, knots, method, frame, baseline_spacing, events, context, kinks
         )
     except KnotSelectionError as first:
         reason = str(first)
@@ -535,13 +536,23 @@ def choose_knots_safely(
         try:
             alt = replace(knots, solver='CLARABEL')
             sel = choose_knots(
-                rough, t0, t1, segments, alt, method, frame, baseline_spacing, events, context
+                rough,
+                t0,
+                t1,
+                segments,
+                alt,
+                method,
+                frame,
+                baseline_spacing,
+                events,
+                context,
+                kinks,
             )
             return replace(sel, info={**sel.info, 'fallback': f'CLARABEL after: {reason}'})
         except KnotSelectionError as second:
             reason += f'; CLARABEL: {second}'
     sel = choose_knots(
-        rough, t0, t1, segments, knots, 'dense', frame, events=events, context=context
+        rough, t0, t1, segments, knots, 'dense', frame, events=events, context=context, kinks=kinks
     )
     return replace(sel, info={'fallback': f'densified knots kept: {reason}'})
 

@@ -2,10 +2,12 @@
 
 1. **Rough trajectory** (:func:`rough_trajectory`): on-board telemetry when present,
    otherwise the triangulated fixes. It carries the true dynamic features.
-2. **Events** (:func:`detect_events`): instants where the acceleration jumps (engine
-   cut-off, ignition). A degree-``p`` spline with single knots is ``C^(p-1)`` and cannot
-   follow them, so the knot there is repeated ``p - 1`` times (``C^1``: position and
-   velocity continuous, acceleration free to jump).
+2. **Events** (:func:`detect_changes`, :mod:`.events`): instants where the acceleration
+   jumps (engine cut-off, ignition). A degree-``p`` spline with single knots is
+   ``C^(p-1)`` and cannot follow them, so the knot there is repeated ``p - 1`` times
+   (``C^1``: position and velocity continuous, acceleration free to jump). Where the
+   acceleration ramps instead (a turn's control ramp) or only bends, the knot at each
+   end of the ramp or at the bend is repeated ``p - 2`` times (the jerk may jump).
 3. **Densification** (:func:`densify`): dense equally spaced knots (finer inside the
    incomplete segments), a weighted least-squares fit of the rough position and velocity
    ``min rho |r - K c|^2 + (1 - rho) |v - K' c|^2`` (each term whitened by the rough
@@ -38,6 +40,7 @@ from orbit_tracking.core.chi2 import chi2_ppf_each
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.errors import OrbitTrackingError
 from orbit_tracking.core.estimation.bspline import SplineAxis, SplineTrajectory
+from orbit_tracking.core.estimation.events import Changes, find_changes
 
 __all__ = [
     'KnotConfig',
@@ -46,6 +49,7 @@ __all__ = [
     'RoughTrajectory',
     'choose_knots',
     'densify',
+    'detect_changes',
     'detect_events',
     'dynamics_knots',
     'load_solver',
@@ -93,7 +97,8 @@ class KnotConfig:
     sparse : bool
         False keeps the densified knots (no selection).
     events : bool
-        Detect acceleration jumps and repeat the knot there.
+        Detect acceleration jumps, ramps and bends and repeat the knots there
+        (:mod:`.events`).
     event_min_jump : float
         Smallest acceleration jump treated as an event [m/s^2].
     event_sigma : float
@@ -260,74 +265,26 @@ def spline_frame(rough: RoughTrajectory) -> tuple[FloatArray, FloatArray]:
     return origin, np.column_stack([x, up, z])
 
 
-def detect_events(rough: RoughTrajectory, cfg: KnotConfig) -> list[float]:
-    """Times where the rough trajectory's acceleration jumps.
-
-    A quadratic is fitted to the velocity over ``event_window`` on each side of every
-    sample; a jump of their slopes at the sample (the acceleration) by more than
-    ``event_min_jump`` and ``event_sigma`` times its noise marks a candidate. The time
-    of each event is then refined by fitting a continuous broken line to the velocity
-    and searching the break on a grid of a twentieth of the sampling interval.
-    Needs velocity samples (telemetry); fixes give none. A sample whose windows reach
-    across a hole in the sampling (more than 1.5 sampling intervals: an outage, a
-    dropout) is not a candidate: the edges of an outage are not events.
-    """
+def detect_changes(rough: RoughTrajectory, cfg: KnotConfig) -> Changes:
+    """Where the rough trajectory's acceleration jumps, and where it ramps (the ends of the
+    ramp: the jerk jumps there), by :func:`~orbit_tracking.core.estimation.events.
+    find_changes`. Needs velocity samples (telemetry); fixes give none."""
     if rough.velocity is None or len(rough) < 10:
-        return []
-    t, v = rough.time, rough.velocity
-    dt = float(np.median(np.diff(t)))
-    k = max(3, int(round(cfg.event_window / dt)))
-    n = t.size
-    if n < 2 * k + 1:
-        return []
-    # quadratic fits on each side, differentiated at the candidate: a steady jerk gives
-    # the same acceleration from both sides, only a jump differs
-    tau = (np.arange(k + 1) - k) * dt
-    a_mat = np.column_stack([np.ones(k + 1), tau, tau**2])
-    pinv = np.linalg.pinv(a_mat)  # (3, k + 1); row 1 = slope at tau = 0
-    w_left = pinv[1]
-    w_right = -w_left[::-1]  # mirror: right window runs forward in time
-    a_l = np.full((n, 3), np.nan)
-    a_r = np.full((n, 3), np.nan)
-    for c in range(3):
-        a_l[k:, c] = np.convolve(v[:, c], w_left[::-1], mode='valid')
-        a_r[: n - k, c] = np.convolve(v[:, c], w_right[::-1], mode='valid')
-    jump = np.linalg.norm(a_r - a_l, axis=1)
-    jump[:k] = np.nan
-    jump[n - k :] = np.nan
-    # the fits take the samples as evenly spaced: a sample whose windows reach across a
-    # hole (a telemetry outage, a dropout) compares fits over the wrong times, and the
-    # outage's edges came out as events (spurious acceleration jumps that freed the spline
-    # across the outage from the jerk prior). No event is claimed there; the measurements'
-    # knot test can still find one.
-    hole = np.diff(t) > 1.5 * dt
-    if np.any(hole):
-        holes = np.concatenate([[0], np.cumsum(hole)])  # holes before each sample
-        i = np.arange(k, n - k)
-        jump[i[holes[i + k] != holes[i - k]]] = np.nan
-    sig_slope = rough.velocity_noise * float(np.sqrt(w_left @ w_left))
-    threshold = max(cfg.event_min_jump, cfg.event_sigma * np.sqrt(2.0) * sig_slope * np.sqrt(3))
-    cand = np.flatnonzero(np.nan_to_num(jump) > threshold)
-    events: list[float] = []
-    while cand.size:
-        i = cand[np.argmax(jump[cand])]
-        events.append(_refine_event(t, v, t[i], cfg.event_window, dt))
-        cand = cand[np.abs(t[cand] - t[i]) > cfg.event_window]
-    return sorted(events)
+        return Changes()
+    return find_changes(
+        rough.time,
+        rough.velocity,
+        rough.velocity_noise,
+        cfg.event_min_jump,
+        cfg.event_sigma,
+        cfg.event_window,
+    )
 
 
-def _refine_event(t: FloatArray, v: FloatArray, tc: float, w: float, dt: float) -> float:
-    m = (t >= tc - w) & (t <= tc + w)
-    ts, vs = t[m], v[m]
-    best, best_tau = np.inf, tc
-    for tau in np.linspace(tc - dt, tc + dt, 41):
-        # continuous broken line: v = v0 + a1 min(t - tau, 0) + a2 max(t - tau, 0)
-        a = np.column_stack([np.ones_like(ts), np.minimum(ts - tau, 0.0), np.maximum(ts - tau, 0)])
-        coef, *_ = np.linalg.lstsq(a, vs, rcond=None)
-        sse = float(np.sum((vs - a @ coef) ** 2))
-        if sse < best:
-            best, best_tau = sse, float(tau)
-    return best_tau
+def detect_events(rough: RoughTrajectory, cfg: KnotConfig) -> list[float]:
+    """Every event time of :func:`detect_changes` (acceleration jumps and ramp ends),
+    sorted."""
+    return detect_changes(rough, cfg).times
 
 
 def _grid(t0: float, t1: float, spacing: float) -> FloatArray:
@@ -360,10 +317,13 @@ def uniform_knots(
     segment_spacing: float | None = None,
     events: Sequence[float] = (),
     degree: int = 4,
+    kinks: Sequence[float] = (),
 ) -> FloatArray:
     """Interior knots: the multiples of ``spacing`` s, the multiples of ``segment_spacing``
-    s inside the segments (and their ends), and each event repeated ``degree - 1`` times
-    (ordinary knots closer than a third of the local spacing to an event are dropped).
+    s inside the segments (and their ends), and each event repeated ``degree - 1`` times,
+    or ``degree - 2`` times (at least once) when it is among the ``kinks`` (the ends of an
+    acceleration ramp: the jerk jumps there; :mod:`.events`); ordinary knots closer than a
+    third of the local spacing to an event are dropped.
     Knots closer than a quarter of the finer spacing to each other, or to the window's ends,
     are dropped."""
     pts = [_grid(t0, t1, spacing)]
@@ -376,11 +336,18 @@ def uniform_knots(
     knots = _merge_close(np.concatenate(pts), 0.25 * local)
     # nor closer than that to the window's ends: an edge moved by 1e-6 s changes no knot
     knots = knots[(knots > t0 + 0.25 * local) & (knots < t1 - 0.25 * local)]
-    ev = np.asarray([e for e in events if t0 < e < t1])
+    # each event time once (a time both a jump and a kink is a jump)
+    kink = {round(float(e), 12) for e in kinks}
+    mult: dict[float, int] = {}
+    for e in events:
+        if t0 < e < t1:
+            m = max(degree - 2, 1) if round(float(e), 12) in kink else degree - 1
+            mult[round(float(e), 12)] = max(m, mult.get(round(float(e), 12), 0))
+    ev = np.asarray(sorted(mult), dtype=float)
     if ev.size:
         near = np.min(np.abs(knots[:, None] - ev[None, :]), axis=1) < local / 3.0
         knots = knots[~near]
-        knots = np.sort(np.concatenate([knots, np.repeat(ev, degree - 1)]))
+        knots = np.sort(np.concatenate([knots, np.repeat(ev, [mult[e] for e in sorted(mult)])]))
     return knots
 
 
@@ -391,12 +358,13 @@ def dynamics_knots(
     spacing: float,
     events: Sequence[float],
     degree: int = 4,
+    kinks: Sequence[float] = (),
 ) -> FloatArray:
     """Baseline (b), seed 000's method 1 in spirit: knots set from the dynamics of the
     rough trajectory, without sparse selection: a repeated knot at each detected event
     (staging) and otherwise uniform knots at ``spacing``."""
     del rough
-    return uniform_knots(t0, t1, spacing, events=events, degree=degree)
+    return uniform_knots(t0, t1, spacing, events=events, degree=degree, kinks=kinks)
 
 
 def _whitened_fit(
@@ -460,6 +428,7 @@ def densify(
     segments: Sequence[tuple[float, float]],
     events: Sequence[float],
     cfg: KnotConfig,
+    kinks: Sequence[float] = (),
 ) -> tuple[list[SplineAxis], list[FloatArray], list[FloatArray], int]:
     """Seed 000's densification, per spline-frame axis.
 
@@ -475,7 +444,9 @@ def densify(
     origin, rot = frame
     local_p = (rough.position - origin) @ rot
     local_v = None if rough.velocity is None else rough.velocity @ rot
-    base = uniform_knots(t0, t1, cfg.base_spacing, segments, cfg.gap_spacing, events, cfg.degree)
+    base = uniform_knots(
+        t0, t1, cfg.base_spacing, segments, cfg.gap_spacing, events, cfg.degree, kinks
+    )
     dt = float(np.median(np.diff(rough.time))) if len(rough) > 1 else 0.0
     min_spacing = max(cfg.min_spacing, 2.0 * dt)
     event_set = set(np.round(np.asarray(events, dtype=float), 12))
@@ -731,6 +702,9 @@ class KnotSelection:
     rough_source: str = ''
     pruned: int = 0
     """Knots dropped afterwards: their jump is not significant in the first solution."""
+    kinks: tuple[float, ...] = ()
+    """The events that are ends of an acceleration ramp (knots of multiplicity
+    ``degree - 2``; the others have ``degree - 1``)."""
 
 
 def choose_knots(
@@ -744,10 +718,12 @@ def choose_knots(
     baseline_spacing: float = 3.0,
     events: Sequence[float] | None = None,
     context: tuple[RoughTrajectory, float, float] | None = None,
+    kinks: Sequence[float] = (),
 ) -> KnotSelection:
     """Knots of the trajectory spline over [t0, t1].
 
-    ``events`` overrides the detection of acceleration jumps.
+    ``events`` overrides the detection of acceleration jumps and ramps; ``kinks`` are then
+    those of them that are ends of a ramp (:func:`detect_changes`).
 
     ``method``: ``sparse`` (densify + l1 selection, the seed's method), ``dense``
     (densified grid, no selection: baseline (c)), ``dynamics`` (baseline (b): events +
@@ -763,13 +739,14 @@ def choose_knots(
     src, a0, a1 = context if context is not None else (rough, t0, t1)
     frame = frame or spline_frame(src)
     if events is None:
-        events = detect_events(src, cfg) if cfg.events else []
+        found = detect_changes(src, cfg) if cfg.events else Changes()
+        events, kinks = found.times, found.kinks
     wide_events = [e for e in events if a0 + cfg.base_spacing / 2 < e < a1 - cfg.base_spacing / 2]
     events = [e for e in events if t0 + cfg.base_spacing / 2 < e < t1 - cfg.base_spacing / 2]
     solve = 0.0
     info: dict[str, str] = {}
     if method == 'dynamics':
-        knots = dynamics_knots(rough, t0, t1, baseline_spacing, events, cfg.degree)
+        knots = dynamics_knots(rough, t0, t1, baseline_spacing, events, cfg.degree, kinks)
         axes = [SplineAxis.from_interior(knots, t0, t1, cfg.degree) for _ in range(3)]
         dense = tuple(a.interior.size for a in axes)
         selected, rounds = dense, 0
@@ -779,7 +756,7 @@ def choose_knots(
         dense = tuple(a.interior.size for a in axes)
         selected, rounds = dense, 0
     elif method in ('sparse', 'dense'):
-        axes, coefs, covs, rounds = densify(src, frame, a0, a1, segments, wide_events, cfg)
+        axes, coefs, covs, rounds = densify(src, frame, a0, a1, segments, wide_events, cfg, kinks)
         dense = tuple(a.interior.size for a in axes)
         if method == 'sparse' and cfg.sparse:
             red = []
@@ -830,6 +807,7 @@ def choose_knots(
         _time.perf_counter() - start,
         method,
         info,
+        kinks=tuple(k for k in kinks if k in events),
     )
 
 
