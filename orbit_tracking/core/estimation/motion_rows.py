@@ -12,7 +12,7 @@ from numpy.typing import NDArray
 
 from orbit_tracking.core.estimation.bspline import SplineTrajectory
 
-__all__ = ['JERK_EVENT_MARGIN', 'jerk_rows', 'thrust_normal']
+__all__ = ['JERK_EVENT_MARGIN', 'jerk_parts', 'jerk_rows', 'thrust_normal']
 
 FloatArray = NDArray[np.float64]
 
@@ -47,9 +47,9 @@ def thrust_normal(
 
 JERK_EVENT_MARGIN = 2.0
 """Seconds on each side of an event (a knot repeated on every axis: the acceleration jumps
-there) whose part of the white-jerk prior has a density of its own: thrust builds up and
-tails off around a staging, and a turn's control ramp is entered, with a jerk far beyond
-the window's average."""
+there, or the jerk at a ramp's end) whose part of the white-jerk prior has a density of its
+own: thrust builds up and tails off around a staging, and a turn's control ramp is
+entered, with a jerk far beyond the window's average."""
 
 
 def jerk_rows(
@@ -61,8 +61,16 @@ def jerk_rows(
     of the penalty's nonzero eigen-part, so that as pseudo-measurements they count as many
     degrees of freedom as the penalty has rank. The two parts have densities of their own
     (:mod:`.priors`). Left out altogether, the pieces near events were held by nothing but
-    the data; at an aircraft's turn ramps, which the event detection takes for events,
-    they rang by metres with sub-metre sigmas."""
+    the data; at an aircraft's turn ramps they rang by metres with sub-metre sigmas. Both
+    parts at once: :func:`jerk_parts`."""
+    return jerk_parts(traj, t0, t1, step)[int(near_events)]
+
+
+def jerk_parts(
+    traj: SplineTrajectory, t0: float, t1: float, step: float
+) -> tuple[FloatArray, FloatArray]:
+    """:func:`jerk_rows` away from the events and near them, the grid and the events
+    (knots repeated on every axis) found once."""
     n = max(int(math.ceil((t1 - t0) / step)), 1)
     h = (t1 - t0) / n
     tg = t0 + h * (np.arange(n) + 0.5)
@@ -76,7 +84,12 @@ def jerk_rows(
         if events.size
         else np.zeros(tg.size, dtype=bool)
     )
-    tg = tg[near] if near_events else tg[~near]
+    away_rows = _penalty_rows(traj, tg[~near], h)
+    near_rows = _penalty_rows(traj, tg[near], h)
+    return away_rows, near_rows
+
+
+def _penalty_rows(traj: SplineTrajectory, tg: FloatArray, h: float) -> FloatArray:
     if not tg.size:
         return np.zeros((0, traj.n_coef))
     d3 = traj.world_design(tg, 3)

@@ -21,7 +21,7 @@ from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.estimation.bspline import SplineAxis, SplineTrajectory
 from orbit_tracking.core.estimation.config import EstimatorConfig
 from orbit_tracking.core.estimation.knots import uniform_knots
-from orbit_tracking.core.estimation.motion_rows import jerk_rows, thrust_normal
+from orbit_tracking.core.estimation.motion_rows import jerk_parts, thrust_normal
 from orbit_tracking.core.estimation.telemetry_block import (
     VELOCITY_ERROR_PRIOR,
     TelemetryBlock,
@@ -291,8 +291,8 @@ class Problem:
         self.jerk_q: dict[tuple[int, bool], float | None] = {}
         if cfg.jerk_prior:
             for tid, traj in self.trajs.items():
-                for near in (False, True):
-                    mj = jerk_rows(traj, t0, t1, cfg.jerk_grid, near)
+                jerk_part = jerk_parts(traj, t0, t1, cfg.jerk_grid)
+                for near, mj in zip((False, True), jerk_part, strict=True):
                     if mj.shape[0] or not near:
                         self.jerk[tid, near] = mj
                         self.jerk_q[tid, near] = None
