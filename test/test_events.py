@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from orbit_tracking.core.estimation.events import find_changes
 from orbit_tracking.core.estimation.knots import (
     KnotConfig,
     RoughTrajectory,
@@ -73,22 +72,9 @@ def test_a_cut_off_and_an_ignition_close_together_are_two_jumps(seed):
     reaching over both) they looked like a ramp; the fit stops halfway to the other."""
     rng = np.random.default_rng(seed)
     t_cut = 8.0 + rng.uniform(0.0, 0.05)
-    found = find_changes(*_args(_staging(rng, t_cut, t_cut + 1.5)))
+    found = detect_changes(_staging(rng, t_cut, t_cut + 1.5), KnotConfig())
     assert found.kinks == ()
     np.testing.assert_allclose(found.jumps, [t_cut, t_cut + 1.5], atol=0.005)
-
-
-def _args(rough: RoughTrajectory) -> tuple:
-    cfg = KnotConfig()
-    assert rough.velocity is not None
-    return (
-        rough.time,
-        rough.velocity,
-        rough.velocity_noise,
-        cfg.event_min_jump,
-        cfg.event_sigma,
-        cfg.event_window,
-    )
 
 
 def test_a_steady_turn_without_its_entry_is_no_event():
