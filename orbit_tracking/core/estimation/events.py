@@ -107,22 +107,25 @@ def find_changes(
         while cand.size:
             i = cand[np.argmax(score[cand])]
             tc = float(t[i])
-            # the fit reaches two windows each side, but not past halfway to another
-            # change (seed 000's cut-off and ignition 1.5 s apart)
-            others = np.concatenate([t[peak], jumps, kinks])
+            # the fit reaches a window past the times searched, but not past halfway to
+            # another change (seed 000's cut-off and ignition 1.5 s apart); the jerk's
+            # candidates are searched over its two windows, and only the changes found
+            # stop them (its peaks come in pairs, at a ramp's two ends)
+            grid = reach * (p + 1)
+            others = np.concatenate([t[peak] if p == 0 else [], jumps, kinks])
             before = others[others < tc - reach]
             after = others[others > tc + reach]
-            lo_fit = max(tc - 2.0 * reach, 0.5 * (tc + before.max()) if before.size else -np.inf)
-            hi_fit = min(tc + 2.0 * reach, 0.5 * (tc + after.min()) if after.size else np.inf)
-            kind, times = _classify(t, v, tc, reach, dt, noise, (lo_fit, hi_fit))
-            if kind == 'kink' and p == 0:
+            lo = max(tc - grid - reach, 0.5 * (tc + before.max()) if before.size else -np.inf)
+            hi = min(tc + grid + reach, 0.5 * (tc + after.min()) if after.size else np.inf)
+            kind, times = _classify(t, v, tc, grid, dt, noise, (lo, hi))
+            if kind in ('kink', 'none') and p == 0:
                 kind = 'jump'  # the acceleration jumps here: a jump or a ramp, not a bend
             if kind == 'jump' and p == 0:
                 # refined around the candidate, where the jump's statistic peaks
                 times = (_refine_jump(t, v, tc, window, dt),)
                 jumps.append(times[0])
-            elif kind == 'jump':
-                kind = 'none'  # the acceleration's statistic found no jump here
+            elif kind in ('jump', 'none'):
+                kind, times = 'none', (tc,)  # no jump the first pass missed, nor a bend
             else:
                 kinks.extend(times)
             # the samples within reach of it see it (of the candidate, for a jump: a second
@@ -211,15 +214,19 @@ def _classify(
 ) -> tuple[str, tuple[float, ...]]:
     """What changes near the candidate ``tc``, fitted to the samples within ``span``: a
     ``kink`` (the jerk jumps at one time), a ``jump`` (the acceleration jumps) or a
-    ``ramp`` (the jerk jumps at its two ends), with its time(s). The simplest that no other
-    beats by :data:`RAMP_CHI2` (velocity noise units); a ramp also explains a quarter of a
-    jump's misfit and lasts :data:`MIN_RAMP` and at least a sampling interval."""
+    ``ramp`` (the jerk jumps at its two ends), with its time(s), searched within ``reach``
+    of it; or ``none`` (no time) when a bend is all and fits no better than the cubic alone.
+    The simplest that no other beats by :data:`RAMP_CHI2` (velocity noise units); a ramp
+    also explains a quarter of a jump's misfit and lasts :data:`MIN_RAMP` and at least a
+    sampling interval."""
     m = (t >= span[0]) & (t <= span[1])
     ts, vs = t[m], v[m]
     if ts.size < 10:
         return 'jump', (tc,)
     s = (ts - tc) / reach
     base = np.column_stack([np.ones_like(s), s, s**2, s**3])
+    coef, *_ = np.linalg.lstsq(base, vs, rcond=None)
+    e_none = float(np.sum((vs - base @ coef) ** 2))
 
     def up(tau: float) -> FloatArray:
         return np.asarray(np.maximum(ts - tau, 0.0) / reach)
@@ -244,7 +251,11 @@ def _classify(
     )
     if ramp_ok:
         return 'ramp', (t1, t2)
-    return (kind, (t_kink,)) if kind == 'kink' else (kind, (t_jump,))
+    if kind == 'kink':
+        # a bend that no better than the cubic alone has no time to speak of (1-2 Hz
+        # quantised GPS put them 1-2 s from the true ramp ends)
+        return ('kink', (t_kink,)) if e_kink < e_none - c else ('none', ())
+    return kind, (t_jump,)
 
 
 def _pair(
