@@ -543,6 +543,12 @@ def _estimate_once(
         if g is not None
     )
     msg += ''.join(
+        f'; target {tid} events: {len(k.events) - len(k.kinks)} acceleration jumps, '
+        f'{len(k.kinks)} ramp ends or bends'
+        for tid, k in sorted((tid, ts.knots) for tid, ts in targets.items())
+        if k.events
+    )
+    msg += ''.join(
         f'; target {tid} white-jerk prior {q:.3g} m^2/s^5' + (' near events' if near else '')
         for (tid, near), q in sorted(prob.jerk_q.items())
         if q is not None
