@@ -336,18 +336,19 @@ def uniform_knots(
     knots = _merge_close(np.concatenate(pts), 0.25 * local)
     # nor closer than that to the window's ends: an edge moved by 1e-6 s changes no knot
     knots = knots[(knots > t0 + 0.25 * local) & (knots < t1 - 0.25 * local)]
-    # each event time once (a time both a jump and a kink is a jump)
+    # each event time once (a time both a jump and a kink is a jump), at its own value
     kink = {round(float(e), 12) for e in kinks}
-    mult: dict[float, int] = {}
+    mult: dict[float, tuple[float, int]] = {}
     for e in events:
         if t0 < e < t1:
-            m = max(degree - 2, 1) if round(float(e), 12) in kink else degree - 1
-            mult[round(float(e), 12)] = max(m, mult.get(round(float(e), 12), 0))
-    ev = np.asarray(sorted(mult), dtype=float)
+            key = round(float(e), 12)
+            m = max(degree - 2, 1) if key in kink else degree - 1
+            mult[key] = (mult.get(key, (float(e), 0))[0], max(m, mult.get(key, (0.0, 0))[1]))
+    ev = np.asarray([mult[k][0] for k in sorted(mult)], dtype=float)
     if ev.size:
         near = np.min(np.abs(knots[:, None] - ev[None, :]), axis=1) < local / 3.0
         knots = knots[~near]
-        knots = np.sort(np.concatenate([knots, np.repeat(ev, [mult[e] for e in sorted(mult)])]))
+        knots = np.sort(np.concatenate([knots, np.repeat(ev, [mult[k][1] for k in sorted(mult)])]))
     return knots
 
 
