@@ -336,19 +336,19 @@ def uniform_knots(
     knots = _merge_close(np.concatenate(pts), 0.25 * local)
     # nor closer than that to the window's ends: an edge moved by 1e-6 s changes no knot
     knots = knots[(knots > t0 + 0.25 * local) & (knots < t1 - 0.25 * local)]
-    # each event time once (a time both a jump and a kink is a jump), at its own value
+    # each event time once, at its own value; the end of a ramp gets one knot fewer
     kink = {round(float(e), 12) for e in kinks}
-    mult: dict[float, tuple[float, int]] = {}
+    first: dict[float, float] = {}
     for e in events:
         if t0 < e < t1:
-            key = round(float(e), 12)
-            m = max(degree - 2, 1) if key in kink else degree - 1
-            mult[key] = (mult.get(key, (float(e), 0))[0], max(m, mult.get(key, (0.0, 0))[1]))
-    ev = np.asarray([mult[k][0] for k in sorted(mult)], dtype=float)
+            first.setdefault(round(float(e), 12), float(e))
+    keys = sorted(first)
+    ev = np.asarray([first[key] for key in keys], dtype=float)
+    mult = [max(degree - 2, 1) if key in kink else degree - 1 for key in keys]
     if ev.size:
         near = np.min(np.abs(knots[:, None] - ev[None, :]), axis=1) < local / 3.0
         knots = knots[~near]
-        knots = np.sort(np.concatenate([knots, np.repeat(ev, [mult[k][1] for k in sorted(mult)])]))
+        knots = np.sort(np.concatenate([knots, np.repeat(ev, mult)]))
     return knots
 
 
