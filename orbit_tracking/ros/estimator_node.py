@@ -369,6 +369,27 @@ class EstimatorNode(WindowOutputs, StationInputs):
                 min_value=0.01,
                 max_value=10.0,
             ),
+            event_manoeuvre_density=declare(
+                self,
+                'event_manoeuvre_density',
+                30.0,
+                'Density [m^2/s^5] of the same consider term across event_manoeuvre_half_width '
+                "either side of every detected event (an acceleration jump, a turn ramp's "
+                'end): the detail of a manoeuvre its knots follow only approximately (a ramp '
+                'end placed tenths of a second off). The estimate does not change. 0 = off.',
+                read_only=True,
+                min_value=0.0,
+                max_value=1e6,
+            ),
+            event_manoeuvre_half_width=declare(
+                self,
+                'event_manoeuvre_half_width',
+                3.0,
+                'Half width [s] of the spans around detected events that carry that term.',
+                read_only=True,
+                min_value=0.05,
+                max_value=30.0,
+            ),
             edge_gap=declare(
                 self,
                 'edge_gap',

@@ -201,6 +201,13 @@ class EstimatorConfig:
         itself does not change. 0 = off.
     gap_manoeuvre_step : float
         Spacing [s] of those steps' instants.
+    event_manoeuvre_density : float
+        Density q [m^2/s^5] of the same consider term across ``event +-
+        event_manoeuvre_half_width`` around every detected event (acceleration jump, ramp
+        end or bend): the detail of a manoeuvre the event's knots follow only
+        approximately (a ramp end placed a few tenths of a second off). 0 = off.
+    event_manoeuvre_half_width : float
+        Half width [s] of those spans.
     gm : float
         Gravitational parameter [m^3/s^2] of that constraint.
     segments : tuple of (start, end)
@@ -249,6 +256,8 @@ class EstimatorConfig:
     jerk_grid: float = 0.25
     gap_manoeuvre_density: float = 300.0
     gap_manoeuvre_step: float = 0.5
+    event_manoeuvre_density: float = 30.0
+    event_manoeuvre_half_width: float = 3.0
     gm: float = 3.986005e14
     segments: tuple[Segment, ...] = ()
     detect_segments: bool = True
@@ -291,6 +300,16 @@ class EstimatorConfig:
             raise ValueError(
                 f'gap_manoeuvre_density must lie in [0, 1e6] m^2/s^5; got '
                 f'{self.gap_manoeuvre_density}'
+            )
+        if not 0.0 <= self.event_manoeuvre_density <= 1e6:
+            raise ValueError(
+                f'event_manoeuvre_density must lie in [0, 1e6] m^2/s^5; got '
+                f'{self.event_manoeuvre_density}'
+            )
+        if not 0.05 <= self.event_manoeuvre_half_width <= 30.0:
+            raise ValueError(
+                'event_manoeuvre_half_width must lie in [0.05, 30] s; got '
+                f'{self.event_manoeuvre_half_width}'
             )
         if not 0.01 <= self.gap_manoeuvre_step <= 10.0:
             raise ValueError(

@@ -53,7 +53,11 @@ from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.errors import OrbitTrackingError
 from orbit_tracking.core.estimation.config import EstimationError, EstimatorConfig, Segment
 from orbit_tracking.core.estimation.coverage import find_incomplete_segments, merge_segments
-from orbit_tracking.core.estimation.gap_manoeuvres import GapManoeuvres, gap_manoeuvres
+from orbit_tracking.core.estimation.gap_manoeuvres import (
+    GapManoeuvres,
+    event_spans,
+    gap_manoeuvres,
+)
 from orbit_tracking.core.estimation.gauss_newton import covariance, solve
 from orbit_tracking.core.estimation.knot_refinement import (
     choose_knots_safely,
@@ -108,12 +112,17 @@ def _gap_manoeuvres(
     cov: FloatArray,
     tid: int,
     segs: tuple[Segment, ...],
+    events: tuple[float, ...],
     cfg: EstimatorConfig,
     scale: float,
 ) -> GapManoeuvres | None:
     """The consider term of the manoeuvres target ``tid``'s incomplete segments may hide
-    (None when ``gap_manoeuvre_density`` is 0 or there is no segment)."""
-    if cfg.gap_manoeuvre_density <= 0.0 or not segs or jac is None:
+    and of the detail its ``events`` leave unmodelled (None when neither applies)."""
+    traj = prob.trajs[tid]
+    spans = event_spans(events, cfg.event_manoeuvre_half_width, traj.t0, traj.t1)
+    if jac is None or not (
+        (segs and cfg.gap_manoeuvre_density > 0.0) or (spans and cfg.event_manoeuvre_density > 0.0)
+    ):
         return None
     return gap_manoeuvres(
         prob.rows,
@@ -126,6 +135,8 @@ def _gap_manoeuvres(
         cfg.gap_manoeuvre_step,
         cfg.gap_manoeuvre_density,
         scale,
+        spans,
+        cfg.event_manoeuvre_density,
     )
 
 
@@ -461,7 +472,16 @@ def _estimate_once(
         cfg.max_unconverged_decrement,
     )
     manoeuvres = {
-        tid: _gap_manoeuvres(prob, jac, cov, tid, segments[tid], cfg, verdict.covariance_scale)
+        tid: _gap_manoeuvres(
+            prob,
+            jac,
+            cov,
+            tid,
+            segments[tid],
+            selections[tid].events,
+            cfg,
+            verdict.covariance_scale,
+        )
         for tid in selections
     }
     # after the consider term, which needs the data's own (J^T J)^-1
@@ -537,8 +557,20 @@ def _estimate_once(
         msg += f'; covariance scaled by the misfit ({verdict.covariance_scale / near:.3g})'
     msg += isotropic_note(targets, t0, t1, cfg.nonlinear_sigma)
     msg += ''.join(
-        f'; target {tid} covariance carries the manoeuvres its incomplete segments may hide '
-        f'({g.taus.size} acceleration steps, {g.density:g} m^2/s^5)'
+        f'; target {tid} covariance carries the manoeuvres '
+        + ' and '.join(
+            w
+            for w, on in (
+                (f'its incomplete segments may hide ({g.density:g} m^2/s^5)', g.density > 0),
+                (
+                    f'{g.event_spans} spans around events leave unmodelled '
+                    f'({g.event_density:g} m^2/s^5)',
+                    g.event_density > 0,
+                ),
+            )
+            if on
+        )
+        + f' ({g.taus.size} acceleration steps)'
         for tid, g in sorted(manoeuvres.items())
         if g is not None
     )

@@ -1,4 +1,5 @@
-"""Manoeuvres an incomplete segment may hide, carried in the published covariance.
+"""Manoeuvres an incomplete segment may hide, and the shape of those the knots follow only
+approximately, carried in the published covariance.
 
 Inside an incomplete segment one or two stations measure. A staging event or the onset
 of a turn there changes the acceleration, and the window's spline (whose knots the few
@@ -26,6 +27,15 @@ where they do not, it grows with the prior, as it should. The posterior is centr
 the published estimate while the residuals show no sign of a step; a step the data see
 but the knots leave unfitted (the knot test's business) is not covered by it.
 
+The same term, with its own density, stands around every detected event (an acceleration
+jump, a ramp's end). Knots of higher multiplicity there let the spline change its
+acceleration or jerk, but only at the detected instant and in the spline's shape: a ramp end
+placed 0.3 s early by noisy 1 Hz data leaves the velocity between samples off by tenths of
+a metre per second where the formal covariance claims centimetres. Steps of the
+acceleration on a grid across ``event +- half width`` stand for that unmodelled detail; the
+data's information about them is taken into account as above (dense radar rows keep the
+term small, sparse samples leave it large).
+
 A step moves every later row, so ``H_c`` is dense after its instant. But a row depends on
 the steps before it through a quadratic in ``tau``: its part of ``H_c`` is ``Q V``, ``Q``
 nine numbers per row and ``V`` the instants' powers. So ``H_c^T H_c`` and ``J^T H_c`` are
@@ -44,7 +54,7 @@ from numpy.typing import NDArray
 from orbit_tracking.core.estimation.bspline import SplineTrajectory
 from orbit_tracking.core.estimation.config import Segment
 
-__all__ = ['GapManoeuvres', 'gap_manoeuvres', 'instants']
+__all__ = ['GapManoeuvres', 'event_spans', 'gap_manoeuvres', 'instants']
 
 FloatArray = NDArray[np.float64]
 
@@ -63,6 +73,8 @@ class GapManoeuvres:
     gain: FloatArray
     posterior: FloatArray
     density: float
+    event_density: float = 0.0
+    event_spans: int = 0
 
     def state_covariance(
         self,
@@ -107,6 +119,22 @@ def instants(segments: tuple[Segment, ...], step: float) -> tuple[FloatArray, Fl
     return tau[order], width[order]
 
 
+def event_spans(
+    events: tuple[float, ...], half_width: float, t0: float, t1: float
+) -> tuple[Segment, ...]:
+    """The spans ``event +- half_width`` inside [t0, t1], overlapping ones merged."""
+    out: list[list[float]] = []
+    for e in sorted(events):
+        a, b = max(t0, e - half_width), min(t1, e + half_width)
+        if b <= a:
+            continue
+        if out and a <= out[-1][1]:
+            out[-1][1] = max(out[-1][1], b)
+        else:
+            out.append([a, b])
+    return tuple((a, b) for a, b in out)
+
+
 def gap_manoeuvres(
     rows: list[tuple[int, FloatArray, FloatArray, FloatArray, bool]],
     jac: sp.csr_matrix,
@@ -118,10 +146,13 @@ def gap_manoeuvres(
     step: float,
     density: float,
     scale: float = 1.0,
+    events: tuple[Segment, ...] = (),
+    event_density: float = 0.0,
 ) -> GapManoeuvres | None:
     """The consider term of ``target``: acceleration steps every ``step`` seconds inside
     ``segments`` (:func:`instants`), each standing for its share of a white jerk of
-    density ``density`` (prior variance ``density * width``).
+    density ``density`` (prior variance ``density * width``), and likewise inside the
+    spans ``events`` around detected events with density ``event_density``.
 
     ``rows`` are the problem's per-row records (target, time, whitened d/d position and
     d/d velocity, telemetry flag) in the order of the rows of ``jac``; ``cov`` is
@@ -130,11 +161,19 @@ def gap_manoeuvres(
     its misfit (the data are that much less informative). None when off or without
     segments.
     """
-    segs = tuple((float(a), float(b)) for a, b in segments if b > a)
-    taus, widths = instants(segs, step)
-    k = taus.size
-    if k == 0 or density <= 0.0:
+    groups = [
+        (tuple((float(a), float(b)) for a, b in spans if b > a), q)
+        for spans, q in ((segments, density), (events, event_density))
+        if q > 0.0
+    ]
+    parts = [(*instants(spans, step), q) for spans, q in groups if spans]
+    if not parts:
         return None
+    taus = np.concatenate([p[0] for p in parts])
+    variances = np.concatenate([p[2] * p[1] for p in parts])
+    order = np.argsort(taus, kind='stable')
+    taus, variances = taus[order], variances[order]
+    k = taus.size
     t = np.concatenate([r[1] for r in rows])
     mine = np.concatenate([np.full(r[1].size, r[0] == target) for r in rows])
     fp = np.concatenate([r[2] for r in rows])
@@ -179,11 +218,13 @@ def gap_manoeuvres(
     pu = cov @ u
     info = (hth - u.T @ pu) / scale
     info = 0.5 * (info + info.T)
-    info[np.diag_indices_from(info)] += 1.0 / (density * np.repeat(widths, 3))
+    info[np.diag_indices_from(info)] += 1.0 / np.repeat(variances, 3)
     posterior = np.linalg.inv(info)
     return GapManoeuvres(
         taus=taus.copy(),
         gain=pu[offset : offset + n_coef].copy(),
         posterior=0.5 * (posterior + posterior.T),
-        density=density,
+        density=density if segments and density > 0.0 else 0.0,
+        event_density=event_density if events and event_density > 0.0 else 0.0,
+        event_spans=len(events) if event_density > 0.0 else 0,
     )

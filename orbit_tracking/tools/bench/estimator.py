@@ -167,7 +167,7 @@ def _formal(
     sol: TargetSolution | _Stitched | SmoothedTrack,
 ) -> TargetSolution | _Stitched | SmoothedTrack:
     """``sol`` without the consider term of the manoeuvres its incomplete segments may
-    hide (``sol`` itself when it has none)."""
+    hide and its events' knots may miss (``sol`` itself when it has none)."""
     if isinstance(sol, TargetSolution):
         return dataclasses.replace(sol, manoeuvres=None) if sol.manoeuvres else sol
     if isinstance(sol, _Stitched):
@@ -199,8 +199,8 @@ def _evaluate(
     t = tr.time[m]
     x, cov = sol.states(t)
     # the bound is the model's own information: without the manoeuvres the published
-    # covariance adds for incomplete segments (gap_manoeuvre_density); NEES takes the
-    # published covariance
+    # covariance adds for incomplete segments and around events (gap_ and
+    # event_manoeuvre_density); NEES takes the published covariance
     formal = _formal(sol)
     cov_f = cov if formal is sol else formal.states(t)[1]
     e = x - np.hstack([tr.position[m], tr.velocity[m]])
