@@ -201,7 +201,7 @@ def test_the_detail_a_turn_s_knots_miss_widens_the_velocity_covariance() -> None
     res, sol, x, maha = _turn_window(30.0)
     assert res.success, res.message
     assert sol.manoeuvres is not None
-    assert 'spans around events leave unmodelled (30 m^2/s^5)' in res.message
+    assert 'spans around events (found or doubtful) leave unmodelled (30 m^2/s^5)' in res.message
     assert np.sum(maha > 5.0) <= 3
     _, sol_off, x_off, maha_off = _turn_window(0.0)
     assert sol_off.manoeuvres is None

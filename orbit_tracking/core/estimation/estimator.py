@@ -309,7 +309,11 @@ def _estimate_once(
                 events=selections[tid].events,
                 kinks=selections[tid].kinks,
             )
-            selections[tid] = replace(sel2, rough_source='fixes, then first solution')
+            selections[tid] = replace(
+                sel2,
+                rough_source='fixes, then first solution',
+                doubtful=selections[tid].doubtful,
+            )
         first, first_beta = prob, out.beta
         prob = problem_on_selections()
         beta = np.zeros(prob.n)
@@ -478,7 +482,7 @@ def _estimate_once(
             cov,
             tid,
             segments[tid],
-            selections[tid].events,
+            selections[tid].events + selections[tid].doubtful,
             cfg,
             verdict.covariance_scale,
         )
@@ -563,7 +567,7 @@ def _estimate_once(
             for w, on in (
                 (f'its incomplete segments may hide ({g.density:g} m^2/s^5)', g.density > 0),
                 (
-                    f'{g.event_spans} spans around events leave unmodelled '
+                    f'{g.event_spans} spans around events (found or doubtful) leave unmodelled '
                     f'({g.event_density:g} m^2/s^5)',
                     g.event_density > 0,
                 ),
@@ -577,8 +581,9 @@ def _estimate_once(
     msg += ''.join(
         f'; target {tid} events: {len(k.events) - len(k.kinks)} acceleration jumps, '
         f'{len(k.kinks)} ramp ends or bends'
+        + (f', {len(k.doubtful)} doubtful (no knots)' if k.doubtful else '')
         for tid, k in sorted((tid, ts.knots) for tid, ts in targets.items())
-        if k.events
+        if k.events or k.doubtful
     )
     msg += ''.join(
         f'; target {tid} white-jerk prior {q:.3g} m^2/s^5' + (' near events' if near else '')

@@ -30,6 +30,14 @@ the 35 aircraft draws of the robustness families had a fifth of those states.
 4. **Jerk candidates**: the same with the jumps of the quadratics' curvature (the jerk,
    over two windows each side) where no change found so far reaches: ramps too long for
    the acceleration's statistic to see, and bends; a jump found here is dropped.
+5. **Doubtful changes**: a candidate that fitted no change, and the strongest sample of
+   every run where the acceleration's statistic exceeds :data:`DOUBT` of its threshold
+   out of reach of the changes found. They get no knots (the threshold is there to keep
+   noise from freeing the spline); the window's covariance carries a consider term
+   around them as around the changes found (``event_manoeuvre_density``). With 5 Hz
+   telemetry of 0.2 m/s noise a turn ramp's end is found about as often as it is only
+   doubtful, and the states beside an unknotted end were off by tenths of a metre per
+   second at centimetres of sigma.
 """
 
 from __future__ import annotations
@@ -56,6 +64,11 @@ KINK_FLOOR = 2.5
 acceleration turns with the velocity, and quadratic fits a few seconds apart (at 1 Hz)
 differ by 2-3 m/s^3 without any kink; the turn ramps of the aircraft draws are 7-15."""
 
+DOUBT = 0.5
+"""Share of its threshold above which the acceleration's statistic marks a doubtful
+change (the threshold is ``event_sigma`` noise sigmas: half of it is still far above the
+noise)."""
+
 _COARSE = 32
 """Grid points over the search span in the first pass of the jump-or-ramp fit."""
 
@@ -67,6 +80,10 @@ class Changes:
 
     jumps: tuple[float, ...] = ()
     kinks: tuple[float, ...] = ()
+    doubtful: tuple[float, ...] = ()
+    """Where a change may be but none was found: the acceleration's statistic above
+    :data:`DOUBT` of its threshold away from the changes found, or a candidate that fitted
+    no change (no knots there; the covariance's consider term around events covers them)."""
 
     @property
     def times(self) -> list[float]:
@@ -93,13 +110,15 @@ def find_changes(
         return Changes()
     jumps: list[float] = []
     kinks: list[float] = []
+    doubtful: list[float] = []
     reach = k * dt
     # samples whose windows see a change already found: those of the acceleration's
     # statistic (one window each side), and of the jerk's (two)
     seen = (np.zeros(n, dtype=bool), np.zeros(n, dtype=bool))
     # acceleration jumps first (and what they turn out to be), then the kinks left over:
     # the jerk's statistic also peaks half a window from a jump, and between two jumps
-    for p, score in enumerate(_scores(t, v, k, dt, noise, min_jump, sigma, window)):
+    scores = _scores(t, v, k, dt, noise, min_jump, sigma, window)
+    for p, score in enumerate(scores):
         taken = seen[p]
         above = (score > 1.0) & ~taken
         peak = above & (score >= np.roll(score, 1)) & (score >= np.roll(score, -1))
@@ -126,6 +145,7 @@ def find_changes(
                 jumps.append(times[0])
             elif kind in ('jump', 'none'):
                 kind, times = 'none', (tc,)  # no jump the first pass missed, nor a bend
+                doubtful.append(tc)
             else:
                 kinks.extend(times)
             # the samples within reach of it see it (of the candidate, for a jump: a second
@@ -145,7 +165,18 @@ def find_changes(
                 seen[1][(t >= times[0] - 2.0 * reach) & (t <= times[-1] + 2.0 * reach)] = True
             peak &= ~taken
             cand = cand[~taken[cand]]
-    return Changes(tuple(sorted(jumps)), tuple(sorted(kinks)))
+    # the acceleration's statistic between DOUBT and its threshold, out of reach of the
+    # changes found: the strongest sample of each run
+    score = scores[0]
+    found = np.asarray(jumps + kinks)
+    near = np.zeros(n, dtype=bool)
+    for e in found:
+        near |= np.abs(t - e) <= 2.0 * reach
+    weak = np.flatnonzero((score > DOUBT) & ~near)
+    if weak.size:
+        runs = np.split(weak, np.flatnonzero(np.diff(weak) > 1) + 1)
+        doubtful.extend(float(t[r[np.argmax(score[r])]]) for r in runs)
+    return Changes(tuple(sorted(jumps)), tuple(sorted(kinks)), tuple(sorted(set(doubtful))))
 
 
 def _scores(

@@ -706,6 +706,10 @@ class KnotSelection:
     kinks: tuple[float, ...] = ()
     """The events that are ends of an acceleration ramp (knots of multiplicity
     ``degree - 2``; the others have ``degree - 1``)."""
+    doubtful: tuple[float, ...] = ()
+    """Where the rough trajectory may change its acceleration but no event was found
+    (:attr:`~orbit_tracking.core.estimation.events.Changes.doubtful`): no knots, only the
+    covariance's consider term."""
 
 
 def choose_knots(
@@ -739,9 +743,11 @@ def choose_knots(
     start = _time.perf_counter()
     src, a0, a1 = context if context is not None else (rough, t0, t1)
     frame = frame or spline_frame(src)
+    doubtful: tuple[float, ...] = ()
     if events is None:
         found = detect_changes(src, cfg) if cfg.events else Changes()
         events, kinks = found.times, found.kinks
+        doubtful = tuple(e for e in found.doubtful if t0 < e < t1)
     wide_events = [e for e in events if a0 + cfg.base_spacing / 2 < e < a1 - cfg.base_spacing / 2]
     events = [e for e in events if t0 + cfg.base_spacing / 2 < e < t1 - cfg.base_spacing / 2]
     solve = 0.0
@@ -809,6 +815,7 @@ def choose_knots(
         method,
         info,
         kinks=tuple(k for k in kinks if k in events),
+        doubtful=doubtful,
     )
 
 
