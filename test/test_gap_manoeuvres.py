@@ -207,3 +207,40 @@ def test_the_detail_a_turn_s_knots_miss_widens_the_velocity_covariance() -> None
     assert sol_off.manoeuvres is None
     assert np.sum(maha_off > 5.0) >= 20
     np.testing.assert_array_equal(x, x_off)
+
+
+def _staging_without_telemetry(density: float):
+    """Robustness draw ascent 7 (no telemetry: the rough trajectory is the fixes, then the
+    first solution), its window 0-60 s over a staging at 16.19 and 18.52 s. The window,
+    its knot selection and the velocity Mahalanobis distances on a 0.1 s grid."""
+    from orbit_tracking.core.estimation.config import EstimatorConfig
+    from orbit_tracking.core.estimation.estimator import estimate
+    from orbit_tracking.tools.bench.robustness_draw import _case
+
+    case = _case('ascent', 7)
+    est = estimate(case.obs_est, 0.0, 60.0, EstimatorConfig(event_manoeuvre_density=density))
+    sol = est.targets[0]
+    sel = (case.truth_t >= 0.0) & (case.truth_t <= 60.0)
+    tt = case.truth_t[sel][::2]
+    x, cov = sol.states(tt)
+    e = x[:, 3:6] - case.truth_x[sel][::2, 3:6]
+    maha = np.sqrt(np.einsum('ki,kij,kj->k', e, np.linalg.inv(cov[:, 3:6, 3:6]), e))
+    return est, sol.knots, maha
+
+
+@pytest.mark.timeout(300)
+def test_a_staging_only_the_first_solution_shows_is_doubtful_and_covered() -> None:
+    """Without telemetry nothing shows the staging before the first solution; its velocity
+    (a smooth spline, no knots from it) marks doubtful changes around both events, and the
+    consider term there leaves at most a few velocity states beyond 5 sigma (measured: 2,
+    and 20 without the term)."""
+    est, knots, maha = _staging_without_telemetry(30.0)
+    assert est.success, est.message
+    assert knots.rough_source == 'fixes, then first solution'
+    assert knots.events == ()
+    for event in (16.19, 18.52):
+        assert np.min(np.abs(np.asarray(knots.doubtful) - event)) < 1.5, knots.doubtful
+    assert 'doubtful (no knots)' in est.message
+    assert np.sum(maha > 5.0) <= 5
+    _, _, maha_off = _staging_without_telemetry(0.0)
+    assert np.sum(maha_off > 5.0) >= 12

@@ -69,6 +69,7 @@ from orbit_tracking.core.estimation.knot_refinement import (
 from orbit_tracking.core.estimation.knots import (
     KnotSelection,
     RoughTrajectory,
+    detect_changes,
     rough_trajectory,
     selection_span,
 )
@@ -309,10 +310,17 @@ def _estimate_once(
                 events=selections[tid].events,
                 kinks=selections[tid].kinks,
             )
+            # the first solution's changes of acceleration make no knots (a smooth spline's
+            # velocity is no white noise: the detector's statistics do not hold for it),
+            # but where it sees one the knots may miss it: doubtful, for the consider term
+            seen = detect_changes(rough2, cfg.knots) if cfg.knots.events else None
+            from_first = () if seen is None else (*seen.times, *seen.doubtful)
             selections[tid] = replace(
                 sel2,
                 rough_source='fixes, then first solution',
-                doubtful=selections[tid].doubtful,
+                doubtful=tuple(
+                    sorted({*selections[tid].doubtful, *(e for e in from_first if t0 < e < t1)})
+                ),
             )
         first, first_beta = prob, out.beta
         prob = problem_on_selections()
