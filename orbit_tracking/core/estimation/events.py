@@ -66,8 +66,8 @@ differ by 2-3 m/s^3 without any kink; the turn ramps of the aircraft draws are 7
 
 DOUBT = 0.5
 """Share of its threshold above which the acceleration's statistic marks a doubtful
-change (the threshold is ``event_sigma`` noise sigmas: half of it is still far above the
-noise)."""
+change (the threshold is at least ``event_sigma`` noise sigmas, 10 by default: half of it
+is still five)."""
 
 _COARSE = 32
 """Grid points over the search span in the first pass of the jump-or-ramp fit."""

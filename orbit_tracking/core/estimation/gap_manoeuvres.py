@@ -67,7 +67,9 @@ class GapManoeuvres:
     """The consider term of one target: step instants ``taus`` (k,) [s], the gain ``gain``
     (n_coef, 3k) of the spline coefficients to the steps (``P U``) and the steps'
     posterior covariance ``posterior`` (3k, 3k); column ``3 j + i`` is instant ``j``, world
-    axis ``i``."""
+    axis ``i``. ``density`` and ``event_density`` [m^2/s^5] are those of the incomplete
+    segments' and the event spans' steps (0: that group is absent), ``event_spans`` the
+    number of (merged) spans around events."""
 
     taus: FloatArray
     gain: FloatArray
@@ -158,8 +160,8 @@ def gap_manoeuvres(
     d/d velocity, telemetry flag) in the order of the rows of ``jac``; ``cov`` is
     ``(J^T J)^-1`` over all parameters and ``offset``, ``n_coef`` locate the target's
     coefficients in it. ``scale`` is the factor the window's covariance was scaled by for
-    its misfit (the data are that much less informative). None when off or without
-    segments.
+    its misfit (the data are that much less informative). None when neither group has
+    both a span and a positive density.
     """
     groups = [
         (tuple((float(a), float(b)) for a, b in spans if b > a), q)
