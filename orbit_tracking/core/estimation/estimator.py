@@ -569,20 +569,7 @@ def _estimate_once(
         msg += f'; covariance scaled by the misfit ({verdict.covariance_scale / near:.3g})'
     msg += isotropic_note(targets, t0, t1, cfg.nonlinear_sigma)
     msg += ''.join(
-        f'; target {tid} covariance carries the manoeuvres '
-        + ' and '.join(
-            w
-            for w, on in (
-                (f'its incomplete segments may hide ({g.density:g} m^2/s^5)', g.density > 0),
-                (
-                    f'{g.event_spans} spans around events (found or doubtful) leave unmodelled '
-                    f'({g.event_density:g} m^2/s^5)',
-                    g.event_density > 0,
-                ),
-            )
-            if on
-        )
-        + f' ({g.taus.size} acceleration steps)'
+        f'; target {tid} covariance carries the manoeuvres {g.note}'
         for tid, g in sorted(manoeuvres.items())
         if g is not None
     )

@@ -53,13 +53,15 @@ from numpy.typing import NDArray
 
 from orbit_tracking.core.estimation.bspline import SplineTrajectory
 from orbit_tracking.core.estimation.config import Segment
+from orbit_tracking.core.estimation.coverage import merge_segments
 
 __all__ = ['GapManoeuvres', 'event_spans', 'gap_manoeuvres', 'instants']
 
 FloatArray = NDArray[np.float64]
 
 MAX_INSTANTS = 240
-"""Most step instants per target (the grid is coarsened beyond this)."""
+"""Most step instants per target and group (incomplete segments, spans around events): the
+grid is coarsened beyond this."""
 
 
 @dataclass(frozen=True)
@@ -77,6 +79,19 @@ class GapManoeuvres:
     density: float
     event_density: float = 0.0
     event_spans: int = 0
+
+    @property
+    def note(self) -> str:
+        """What the term stands for, for the window message."""
+        parts = []
+        if self.density > 0.0:
+            parts.append(f'its incomplete segments may hide ({self.density:g} m^2/s^5)')
+        if self.event_density > 0.0:
+            parts.append(
+                f'{self.event_spans} spans around events (found or doubtful) leave '
+                f'unmodelled ({self.event_density:g} m^2/s^5)'
+            )
+        return ' and '.join(parts) + f' ({self.taus.size} acceleration steps)'
 
     def state_covariance(
         self,
@@ -125,16 +140,9 @@ def event_spans(
     events: tuple[float, ...], half_width: float, t0: float, t1: float
 ) -> tuple[Segment, ...]:
     """The spans ``event +- half_width`` inside [t0, t1], overlapping ones merged."""
-    out: list[list[float]] = []
-    for e in sorted(events):
-        a, b = max(t0, e - half_width), min(t1, e + half_width)
-        if b <= a:
-            continue
-        if out and a <= out[-1][1]:
-            out[-1][1] = max(out[-1][1], b)
-        else:
-            out.append([a, b])
-    return tuple((a, b) for a, b in out)
+    return tuple(
+        merge_segments([(max(t0, e - half_width), min(t1, e + half_width)) for e in events])
+    )
 
 
 def gap_manoeuvres(
