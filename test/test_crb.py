@@ -114,6 +114,25 @@ def test_bound_of_axis_aligned_ranges_is_the_polynomial_regression_variance():
     assert not b.singular
 
 
+def test_joint_covariance_holds_the_bound_per_time_and_flags_unobserved_ones():
+    traj = _trajectory(span=8.0)
+    coef = _coef(traj)
+    rows = _rows(traj, coef, STATIONS, rate=5.0)
+    t = np.linspace(0.5, 7.5, 8)
+    b = bound(traj, station_information(traj, rows), t)
+    sigma, finite = b.joint_position_covariance(t)
+    assert sigma.shape == (24, 24) and finite.all()
+    traces = np.array([np.trace(sigma[3 * k : 3 * k + 3, 3 * k : 3 * k + 3]) for k in range(8)])
+    np.testing.assert_allclose(traces, b.position_var, rtol=1e-9)
+    np.testing.assert_allclose(sigma, sigma.T, atol=1e-12 * np.abs(sigma).max())
+    # neighbouring times of a smooth fit are positively correlated
+    assert sigma[0, 3] > 0.0
+    fields, tr, pose, x, s, v = rows[0]
+    info = station_information(traj, [(('range',), tr, pose, x, s[:, :1], v[:, :1])])
+    one = bound(traj, info, t)
+    assert not one.joint_position_covariance(t)[1].any()
+
+
 def test_states_no_data_can_fix_have_an_infinite_bound():
     traj = _trajectory(span=8.0)
     coef = _coef(traj)

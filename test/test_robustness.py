@@ -48,6 +48,11 @@ def test_a_short_seeded_slice_runs_end_to_end_and_fills_every_column():
             assert math.isfinite(m.pos_rms_out) and math.isfinite(m.vel_rms_out)
             assert math.isfinite(m.wall_s) and m.windows >= 1 and m.states > 0
             assert m.nees_n >= 1 and m.nees_lo < 3.0 < m.nees_hi
+            # correlated samples: a band at least as wide, and the honest estimator's chance
+            # to fall inside the independent one
+            assert m.nees_lo_correlated <= m.nees_lo * 1.03
+            assert m.nees_hi_correlated >= m.nees_hi * 0.97
+            assert 0.0 < m.nees_ideal_in_band <= 0.97
             assert 0.0 < m.coverage <= 1.0
     text = robustness_tables(run)
     for heading in (
@@ -57,6 +62,8 @@ def test_a_short_seeded_slice_runs_end_to_end_and_fills_every_column():
         'out vel RMS/CRB',
         'mean NEES',
         'NEES in its 95 % band',
+        'NEES in the band for correlated errors',
+        'an honest estimator as good as the bound',
         'windows unsuccessful / raised',
         'silent failures',
         'wall per draw',
@@ -141,7 +148,11 @@ def test_a_velocity_off_by_more_than_five_sigma_is_a_silent_failure_too():
 
     t = 0.1 * np.arange(50)
     case = SimpleNamespace(truth_t=t, truth_x=np.zeros((50, 6)), in_gap=np.zeros(50, bool))
-    bound = SimpleNamespace(position=lambda sel: 1.0, velocity=lambda sel: 1.0)
+    bound = SimpleNamespace(
+        position=lambda sel: 1.0,
+        velocity=lambda sel: 1.0,
+        joint_position_covariance=lambda tt: (np.eye(3 * tt.size), np.ones(tt.size, bool)),
+    )
     x = np.zeros((50, 6))
     x[10, 3] = 0.6  # velocity 6 sigma off, position right
     x[20, 0], x[20, 4] = 0.6, 0.6  # both off

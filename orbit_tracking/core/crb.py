@@ -25,13 +25,17 @@ depend on the estimator's choices, so it is that of an *oracle*:
   taking the coefficient block of ``F^-1``.
 * **Bound.** The state covariance ``G(t) F^-1 G(t)^T`` at the truth sampling times;
   :class:`Bound` reports ``sqrt(mean trace)`` of its position and velocity blocks over any
-  subset of them (inside and outside the incomplete segments).
+  subset of them (inside and outside the incomplete segments), and the joint covariance
+  of the positions at any set of times (:meth:`Bound.joint_position_covariance`): how
+  the errors of an estimator as good as the oracle are correlated from one time to
+  another, which sets the spread of a mean NEES over them
+  (:func:`~orbit_tracking.core.metrics.correlated_nees_band`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.linalg as sla
@@ -463,6 +467,10 @@ class Bound:
         have an infinite bound).
     parameters : int
         Spline coefficients (nuisance parameters not counted).
+    trajectory, basis, eigenvalues :
+        The oracle's spline and the eigen-decomposition of ``F`` (Jacobi-scaled) seen from
+        the coefficients, ``F^+`` being ``basis diag(1 / eigenvalues) basis^T`` over the
+        observed directions, for :meth:`joint_position_covariance` (None where not kept).
     """
 
     time: FloatArray
@@ -470,6 +478,27 @@ class Bound:
     velocity_var: FloatArray
     singular: bool
     parameters: int
+    trajectory: SplineTrajectory | None = field(default=None, repr=False, compare=False)
+    basis: FloatArray | None = field(default=None, repr=False, compare=False)
+    eigenvalues: FloatArray | None = field(default=None, repr=False, compare=False)
+    null_tolerance: float = 1e-12
+
+    def joint_position_covariance(self, times: ArrayLike) -> tuple[FloatArray, NDArray[np.bool_]]:
+        """The bound's joint covariance of the positions at ``times`` (``(3m, 3m)``, the
+        three world axes of each time together), and which times it holds finitely
+        (False where a position depends on an unobserved direction, as in :func:`bound`;
+        their rows and columns are then meaningless)."""
+        if self.trajectory is None or self.basis is None or self.eigenvalues is None:
+            raise ValueError('this bound kept no factor of its information')
+        w = self.eigenvalues
+        null = w <= self.null_tolerance * max(float(w.max()), 1e-300)
+        g = self.trajectory.world_design(np.asarray(times, dtype=np.float64), 0)
+        gv = np.asarray(g @ self.basis)
+        leak = np.sum(gv[:, null] ** 2, axis=1)
+        total = np.sum(gv**2, axis=1)
+        finite = ~np.any((leak > 1e-8 * np.maximum(total, 1e-300)).reshape(-1, 3), axis=1)
+        root = gv[:, ~null] / np.sqrt(w[~null])
+        return root @ root.T, finite
 
     def position(self, mask: ArrayLike | None = None) -> float:
         """``sqrt(mean trace)`` of the position block [m] over ``mask`` (nan if empty)."""
@@ -531,4 +560,4 @@ def bound(
             rows = np.where(leak > 1e-8 * np.maximum(total, 1e-300), np.inf, seen)
             var[lo : lo + 2000] = rows.reshape(-1, 3).sum(axis=1)
         out.append(var)
-    return Bound(t, out[0], out[1], bool(np.any(null)), n_c)
+    return Bound(t, out[0], out[1], bool(np.any(null)), n_c, traj, vc, w, null_tolerance)
