@@ -184,7 +184,14 @@ def test_stitch_blends_linearly_across_the_middle_half_of_the_overlap():
     xb, pb = b.targets[0].states(np.clip(t, 40.0, 100.0))
     w = np.clip((55.0 - t) / 10.0, 0.0, 1.0)  # overlap 40-60 s: hand-over 45-55 s
     assert np.allclose(x, w[:, None] * xa + (1 - w[:, None]) * xb, atol=1e-9)
-    assert np.allclose(cov, w[:, None, None] * pa + (1 - w[:, None, None]) * pb, atol=1e-12)
+    # the covariances mixed, and the windows' 1 m disagreement as the mixture's spread
+    d = xa - xb
+    spread = (w * (1 - w))[:, None, None] * d[:, :, None] * d[:, None, :]
+    mix = w[:, None, None] * pa + (1 - w[:, None, None]) * pb
+    assert np.allclose(cov, mix + spread, atol=1e-12)
+    mid = np.argmin(np.abs(t - 50.0))
+    assert cov[mid, 0, 0] - mix[mid, 0, 0] == pytest.approx(0.25 * d[mid, 0] ** 2)
+    assert abs(d[mid, 0]) == pytest.approx(1.0)
     assert np.allclose(x[t <= 45.0], xa[t <= 45.0]) and np.allclose(x[t >= 55.0], xb[t >= 55.0])
     # the 1 m disagreement is spread over the 10 s hand-over: steps of 5 cm, not one 1 m jump
     jump = np.abs(np.diff(x[:, 0]) - 10.0 * 0.5)
