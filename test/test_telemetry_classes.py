@@ -32,23 +32,16 @@ GAP_LIMIT: dict[str, float] = {}
 """Gap RMS over its bound, where a class is known to be weaker than the default 3."""
 
 
-_GAP_OVERCONFIDENT = (
-    'inside the incomplete segment the estimate is 0.1 m off for seconds (gap 1.6-1.9 x '
-    'its bound, NEES 7.4-8.9 against a band top of 5.1) with a covariance the size of the '
-    'bound, 0.03 m an axis; its worst states were 4.5-5.0 sigma off before the white-jerk '
-    'prior covered the seconds around events with a density of their own, and 5.0-5.3 '
-    'sigma after (the robustness families lost silent states with that change: '
-    'docs/BENCHMARKS.md)'
-)
-KNOWN_FAILING: dict[str, str] = {
-    'drift': _GAP_OVERCONFIDENT,
-}
+KNOWN_FAILING: dict[str, str] = {}
 """Classes known to fail, with the reason (strict xfail). time_skew was one until the
 events found in the telemetry were moved to its estimated velocity delay (its 43 silent
 states came from a staging placed 35 ms late, which pulled the delay estimate to 10.6 ms);
 separate_velocity's 5.03-sigma states went with the events no longer claimed at an
 outage's edges, came back, and went again with the consider term around events
-(``event_manoeuvre_density``; its gap ratio, 1.6, and NEES, 7.4, are as before)."""
+(``event_manoeuvre_density``; its gap ratio, 1.6, and NEES, 7.4, are as before). drift
+was one (inside the incomplete segment 0.1 m off for seconds at 5.0-5.3 sigma, gap 1.6-1.9
+bounds, NEES 7.4-8.9) until the covariance carried the separate velocity error its
+window's test could not exclude (``telemetry_velocity.velocity_error_consider``)."""
 
 
 @pytest.mark.timeout(120)

@@ -89,6 +89,7 @@ from orbit_tracking.core.estimation.telemetry_evidence import (
 )
 from orbit_tracking.core.estimation.telemetry_velocity import (
     refine_velocity_error,
+    velocity_error_consider,
     velocity_error_test,
 )
 from orbit_tracking.core.estimation.verdict import judge
@@ -498,6 +499,7 @@ def _estimate_once(
     }
     # after the consider term, which needs the data's own (J^T J)^-1
     size_evidence: dict[int, tuple[float, FloatArray]] = {}
+    raw = cov
     if cfg.estimate_telemetry_error:
         cov, ratios, tables = evidence_covariances(prob.telemetry, out.beta, cov)
         for tb, ratio, table in zip(prob.telemetry, ratios, tables, strict=True):
@@ -507,6 +509,17 @@ def _estimate_once(
                 tel_note += (
                     f'; telemetry {tb.target} error sizes uncertain: their evidence-weighted '
                     f'spread widens variances by up to x{ratio:.3g}'
+                )
+    if cfg.telemetry_velocity_error == 'auto' and prob.telemetry:
+        # from the data's own (J^T J)^-1, like the evidence's term; the two add
+        wider, v_notes = velocity_error_consider(prob, out.beta, raw, obs, cfg, t0, t1)
+        cov = cov + (wider - raw)
+        for tid, (p_w, ratio) in v_notes.items():
+            if ratio > 1.01:
+                tel_note += (
+                    f'; telemetry {tid} covariance carries a separate velocity error the '
+                    f'test could not exclude (posterior {p_w:.2g}): variances up to '
+                    f'x{ratio:.3g}'
                 )
     cov = cov * verdict.covariance_scale
     targets = {}
