@@ -32,7 +32,8 @@ noise), and the trajectory's velocity takes it while its covariance, conditional
 ``e'`` alone, claims a tenth of it (robustness aircraft draw 97, a bias-and-drift
 telemetry after an outage: 0.14 m/s off at 0.022 m/s). :func:`velocity_error_consider`
 publishes what the data cannot rule out: the evidence (Laplace) of ``w`` with prior sigmas
-over :data:`VELOCITY_ERROR_SIZES` times the declared velocity sigma against none, from the
+over :data:`VELOCITY_ERROR_SIZES` times the telemetry velocity's white sigma (as the window
+weighs its rows) against none, from the
 same projected information ``S`` and gradient ``g`` as the test, and the second moment of
 the mixture of their posteriors about the published solution (half the prior on ``e'``
 alone), carried to every unknown by its regression on ``w`` (``-(J^T J)^-1 J^T J_w``). A
@@ -221,7 +222,8 @@ def quadratic_score(
 
 VELOCITY_ERROR_SIZES = np.geomspace(0.1, 10.0, 9)
 """Prior sigmas of ``w`` whose evidence :func:`velocity_error_consider` weighs, in multiples
-of the telemetry's declared velocity sigma (the other half of the prior is on none)."""
+of the telemetry velocity's white sigma as the window weighs its rows (``TelemetryBlock.
+noise``; the other half of the prior is on none)."""
 
 
 def velocity_error_consider(
