@@ -259,7 +259,7 @@ def velocity_error_consider(
         mask = np.zeros(aug.n, dtype=bool)
         mask[cols] = True
         jw = jac[:, cols].toarray()
-        c = np.asarray(jac[:, np.flatnonzero(~mask)].T @ jw)  # (n, k): J^T J_w
+        c = np.asarray(jac.T @ jw)[~mask]  # (n, k): J^T J_w, without slicing J's columns
         gain = cov @ c  # the unknowns' regression on w, up to sign
         s0 = jw.T @ jw - c.T @ gain - np.eye(cols.size) / VELOCITY_ERROR_PRIOR**2
         lam, vec = np.linalg.eigh(0.5 * (s0 + s0.T))
