@@ -499,7 +499,7 @@ def _estimate_once(
     }
     # after the consider term, which needs the data's own (J^T J)^-1
     size_evidence: dict[int, tuple[float, FloatArray]] = {}
-    raw = cov
+    raw = cov  # the data's own (J^T J)^-1, for the velocity error's term below
     if cfg.estimate_telemetry_error:
         cov, ratios, tables = evidence_covariances(prob.telemetry, out.beta, cov)
         for tb, ratio, table in zip(prob.telemetry, ratios, tables, strict=True):
@@ -511,9 +511,8 @@ def _estimate_once(
                     f'spread widens variances by up to x{ratio:.3g}'
                 )
     if cfg.telemetry_velocity_error == 'auto' and prob.telemetry:
-        # from the data's own (J^T J)^-1, like the evidence's term; the two add
-        wider, v_notes = velocity_error_consider(prob, out.beta, raw, obs, cfg, t0, t1)
-        cov = cov + (wider - raw)
+        extra, v_notes = velocity_error_consider(prob, out.beta, raw, obs, cfg, t0, t1)
+        cov = cov + extra  # beside the evidence's term
         for tid, (p_w, ratio) in v_notes.items():
             if ratio > 1.01:
                 tel_note += (

@@ -104,11 +104,36 @@ class VelocityErrorTest(ScoreTest):
         return self.significant
 
 
-def _w_score(aug: Problem, beta: FloatArray, tb: TelemetryBlock) -> tuple[float, int] | None:
-    """:func:`score_statistic` for the separate velocity error ``w`` of block ``tb``."""
+def _w_columns(tb: TelemetryBlock) -> NDArray[np.int_]:
+    """The unknowns of block ``tb``'s separate velocity error ``w``."""
     assert tb.w_axis is not None
     o = tb.offset + 3 * tb.axis.n_coef
-    return score_statistic(aug, beta, np.arange(o, o + 3 * tb.w_axis.n_coef))
+    return np.arange(o, o + 3 * tb.w_axis.n_coef)
+
+
+def _w_score(aug: Problem, beta: FloatArray, tb: TelemetryBlock) -> tuple[float, int] | None:
+    """:func:`score_statistic` for the separate velocity error ``w`` of block ``tb``."""
+    return score_statistic(aug, beta, _w_columns(tb))
+
+
+def _with_w(
+    prob: Problem,
+    beta: FloatArray,
+    tb: TelemetryBlock,
+    obs: Observations,
+    cfg: EstimatorConfig,
+    t0: float,
+    t1: float,
+) -> tuple[Problem, FloatArray, TelemetryBlock] | None:
+    """``prob`` with a separate velocity error ``w`` (at zero) added to block ``tb``, its
+    start and its new block; None where ``tb`` has one already or too few velocity epochs
+    (:data:`MIN_EPOCHS`) for the question."""
+    from orbit_tracking.core.estimation.knot_refinement import rebuild
+
+    if tb.w_axis is not None or int(prob.telemetry_use(tb)[1].sum()) < MIN_EPOCHS:
+        return None
+    aug, beta_a = rebuild(prob, beta, {}, {}, obs, cfg, t0, t1, {tb.target: True})
+    return aug, beta_a, next(b for b in aug.telemetry if b.target == tb.target)
 
 
 def velocity_error_test(
@@ -121,14 +146,12 @@ def velocity_error_test(
 ) -> list[VelocityErrorTest]:
     """The score test of the module docstring for every telemetry block of ``prob`` modelled
     with ``e'`` only (no separate velocity error yet), at the solution ``beta``."""
-    from orbit_tracking.core.estimation.knot_refinement import rebuild
-
     out = []
     for tb in prob.telemetry:
-        if tb.w_axis is not None or int(prob.telemetry_use(tb)[1].sum()) < MIN_EPOCHS:
+        augmented = _with_w(prob, beta, tb, obs, cfg, t0, t1)
+        if augmented is None:
             continue
-        aug, beta_a = rebuild(prob, beta, {}, {}, obs, cfg, t0, t1, {tb.target: True})
-        ta = next(b for b in aug.telemetry if b.target == tb.target)
+        aug, beta_a, ta = augmented
         score = _w_score(aug, beta_a, ta)
         if score is None:
             continue
@@ -235,23 +258,18 @@ def velocity_error_consider(
     t0: float,
     t1: float,
 ) -> tuple[FloatArray, dict[int, tuple[float, float]]]:
-    """``cov`` (the window's ``(J^T J)^-1`` at its solution ``beta``) widened for a
+    """What to add to ``cov`` (the window's ``(J^T J)^-1`` at its solution ``beta``) for a
     separate velocity error of every telemetry block modelled with ``e'`` alone, as in the
     module docstring; and per target the posterior weight of "a ``w``" and the largest
-    ratio of a trajectory variance after to before."""
-    from orbit_tracking.core.estimation.knot_refinement import rebuild
-
-    out = cov
+    ratio of a trajectory variance with the addition to without."""
+    extra = np.zeros_like(cov)
     notes: dict[int, tuple[float, float]] = {}
     for tb in prob.telemetry:
-        use_v = prob.telemetry_use(tb)[1]
-        if tb.w_axis is not None or int(use_v.sum()) < MIN_EPOCHS:
+        augmented = _with_w(prob, beta, tb, obs, cfg, t0, t1)
+        if augmented is None:
             continue
-        aug, beta_a = rebuild(prob, beta, {}, {}, obs, cfg, t0, t1, {tb.target: True})
-        ta = next(b for b in aug.telemetry if b.target == tb.target)
-        assert ta.w_axis is not None
-        o = ta.offset + 3 * ta.axis.n_coef
-        cols = np.arange(o, o + 3 * ta.w_axis.n_coef)
+        aug, beta_a, ta = augmented
+        cols = _w_columns(ta)
         if aug.n - cols.size != prob.n:
             continue
         r, jac, _ = aug.evaluate(beta_a, True)
@@ -267,13 +285,12 @@ def velocity_error_consider(
         moment, p_w = w_mixture_moment(np.maximum(lam, 0.0), vec.T @ (jw.T @ r), sizes)
         root = gain @ vec
         add = root @ moment @ root.T
-        out = out + 0.5 * (add + add.T)
-        ot = prob.offsets[tb.target]
-        nt = prob.trajs[tb.target].n_coef
-        d0 = np.diag(cov)[ot : ot + nt]
-        ratio = float(np.max(np.diag(out)[ot : ot + nt] / np.maximum(d0, 1e-300), initial=1.0))
-        notes[tb.target] = (p_w, ratio)
-    return out, notes
+        add = 0.5 * (add + add.T)
+        extra += add
+        sl = slice(prob.offsets[tb.target], prob.offsets[tb.target] + prob.trajs[tb.target].n_coef)
+        d0 = np.maximum(np.diag(cov)[sl], 1e-300)
+        notes[tb.target] = (p_w, float(np.max(1.0 + np.diag(add)[sl] / d0, initial=1.0)))
+    return extra, notes
 
 
 def w_mixture_moment(
