@@ -288,8 +288,10 @@ def velocity_error_consider(
         add = 0.5 * (add + add.T)
         extra += add
         sl = slice(prob.offsets[tb.target], prob.offsets[tb.target] + prob.trajs[tb.target].n_coef)
-        d0 = np.maximum(np.diag(cov)[sl], 1e-300)
-        notes[tb.target] = (p_w, float(np.max(1.0 + np.diag(add)[sl] / d0, initial=1.0)))
+        d0 = np.diag(cov)[sl]
+        seen = d0 > 1e-12 * max(float(d0.max(initial=0.0)), 1e-300)  # not a pinned coefficient
+        ratio = 1.0 + np.diag(add)[sl][seen] / d0[seen]
+        notes[tb.target] = (p_w, float(np.max(ratio, initial=1.0)))
     return extra, notes
 
 
