@@ -15,6 +15,7 @@ from orbit_tracking.core.estimation.coverage import (
     CoverageConfig,
     find_incomplete_segments,
     merge_segments,
+    unsampled_spans,
 )
 from orbit_tracking.core.estimation.knots import (
     KnotConfig,
@@ -455,3 +456,16 @@ def test_long_spans_without_a_knot_are_filled_from_a_grid_that_ignores_the_edges
     # none inside an incomplete segment
     inside = _fill_long_spans(bare, cfg, [(38.0, 52.0)]).interior
     np.testing.assert_allclose(inside, [5, 10, 15, 20, 25, 30, 35, 55])
+
+
+def test_unsampled_spans_are_the_holes_widened_by_the_detector_s_reach() -> None:
+    t = np.concatenate([np.arange(3.0, 20.0, 1.0), np.arange(30.0, 50.5, 1.0)])
+    # an outage 19-30 s, the start before the first sample (0-3 s), a hole of one sample
+    # (2 s, not longer than the 2.5 s asked) and the end after the last (50-60 s)
+    t = t[t != 40.0]
+    assert unsampled_spans(t, 0.0, 60.0, 2.5, 1.0) == [(0.0, 4.0), (18.0, 31.0), (49.0, 60.0)]
+    # holes whose widened spans touch merge; everything is clipped to the window
+    assert unsampled_spans(np.array([5.0, 10.0, 13.0, 20.0]), 6.0, 19.0, 2.5, 2.0) == [(6.0, 19.0)]
+    # no samples (or one) in the window: no rough trajectory of this kind, no spans
+    assert unsampled_spans(np.array([100.0]), 0.0, 60.0, 2.5, 1.0) == []
+    assert unsampled_spans(np.arange(0.0, 60.5, 1.0), 0.0, 60.0, 2.5, 1.0) == []

@@ -390,6 +390,17 @@ class EstimatorNode(WindowOutputs, StationInputs):
                 min_value=0.05,
                 max_value=30.0,
             ),
+            unseen_manoeuvre_density=declare(
+                self,
+                'unseen_manoeuvre_density',
+                10.0,
+                'Density [m^2/s^5] of the same consider term across the spans where the '
+                'telemetry has no samples (an outage): a turn or a staging there has no event '
+                'found and no knots at its instants. The estimate does not change. 0 = off.',
+                read_only=True,
+                min_value=0.0,
+                max_value=1e6,
+            ),
             edge_gap=declare(
                 self,
                 'edge_gap',

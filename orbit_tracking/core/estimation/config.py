@@ -208,6 +208,11 @@ class EstimatorConfig:
         approximately (a ramp end placed a few tenths of a second off). 0 = off.
     event_manoeuvre_half_width : float
         Half width [s] of those spans.
+    unseen_manoeuvre_density : float
+        Density q [m^2/s^5] of the same consider term across the spans where the
+        telemetry (the rough trajectory whose events make knots) has no samples, widened
+        by ``knots.event_window``: a turn or a staging inside a telemetry outage has no
+        event found, no knots at its instants and none of the term above. 0 = off.
     gm : float
         Gravitational parameter [m^3/s^2] of that constraint.
     segments : tuple of (start, end)
@@ -258,6 +263,7 @@ class EstimatorConfig:
     gap_manoeuvre_step: float = 0.5
     event_manoeuvre_density: float = 30.0
     event_manoeuvre_half_width: float = 3.0
+    unseen_manoeuvre_density: float = 10.0
     gm: float = 3.986005e14
     segments: tuple[Segment, ...] = ()
     detect_segments: bool = True
@@ -305,6 +311,11 @@ class EstimatorConfig:
             raise ValueError(
                 f'event_manoeuvre_density must lie in [0, 1e6] m^2/s^5; got '
                 f'{self.event_manoeuvre_density}'
+            )
+        if not 0.0 <= self.unseen_manoeuvre_density <= 1e6:
+            raise ValueError(
+                f'unseen_manoeuvre_density must lie in [0, 1e6] m^2/s^5; got '
+                f'{self.unseen_manoeuvre_density}'
             )
         if not 0.05 <= self.event_manoeuvre_half_width <= 30.0:
             raise ValueError(

@@ -23,7 +23,7 @@ from numpy.typing import NDArray
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.models.measurements import predict
 
-__all__ = ['CoverageConfig', 'find_incomplete_segments', 'merge_segments']
+__all__ = ['CoverageConfig', 'find_incomplete_segments', 'merge_segments', 'unsampled_spans']
 
 FloatArray = NDArray[np.float64]
 Segment = tuple[float, float]
@@ -52,6 +52,26 @@ def merge_segments(segments: Sequence[Segment], join: float = 0.0) -> list[Segme
         else:
             out.append([a, b])
     return [(a, b) for a, b in out]
+
+
+def unsampled_spans(
+    times: FloatArray, t0: float, t1: float, hole: float, reach: float
+) -> list[Segment]:
+    """Spans of [t0, t1] where a rough trajectory sampled at ``times`` cannot show an
+    event: its holes longer than ``hole`` seconds (a telemetry outage; before its first
+    sample and after its last too), widened on each side by the event detector's ``reach``
+    and clipped to the window. Empty with fewer than two samples in the window (the
+    rough trajectory is then something else, whose events are found on it)."""
+    t = np.sort(np.asarray(times, dtype=np.float64))
+    t = t[(t >= t0) & (t <= t1)]
+    if t.size < 2:
+        return []
+    lo = np.concatenate([[t0], t])
+    hi = np.concatenate([t, [t1]])
+    wide = hi - lo > hole
+    return merge_segments(
+        [(max(t0, a - reach), min(t1, b + reach)) for a, b in zip(lo[wide], hi[wide], strict=True)]
+    )
 
 
 def find_incomplete_segments(

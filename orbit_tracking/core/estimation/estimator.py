@@ -52,7 +52,11 @@ from numpy.typing import NDArray
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.errors import OrbitTrackingError
 from orbit_tracking.core.estimation.config import EstimationError, EstimatorConfig, Segment
-from orbit_tracking.core.estimation.coverage import find_incomplete_segments, merge_segments
+from orbit_tracking.core.estimation.coverage import (
+    find_incomplete_segments,
+    merge_segments,
+    unsampled_spans,
+)
 from orbit_tracking.core.estimation.gap_manoeuvres import (
     GapManoeuvres,
     event_spans,
@@ -117,13 +121,17 @@ def _gap_manoeuvres(
     events: tuple[float, ...],
     cfg: EstimatorConfig,
     scale: float,
+    unseen: tuple[Segment, ...] = (),
 ) -> GapManoeuvres | None:
-    """The consider term of the manoeuvres target ``tid``'s incomplete segments may hide
-    and of the detail its ``events`` leave unmodelled (None when neither applies)."""
+    """The consider term of the manoeuvres target ``tid``'s incomplete segments and the
+    ``unseen`` spans of its telemetry may hide and of the detail its ``events`` leave
+    unmodelled (None when none applies)."""
     traj = prob.trajs[tid]
     spans = event_spans(events, cfg.event_manoeuvre_half_width, traj.t0, traj.t1)
     if jac is None or not (
-        (segs and cfg.gap_manoeuvre_density > 0.0) or (spans and cfg.event_manoeuvre_density > 0.0)
+        (segs and cfg.gap_manoeuvre_density > 0.0)
+        or (spans and cfg.event_manoeuvre_density > 0.0)
+        or (unseen and cfg.unseen_manoeuvre_density > 0.0)
     ):
         return None
     return gap_manoeuvres(
@@ -139,7 +147,23 @@ def _gap_manoeuvres(
         scale,
         spans,
         cfg.event_manoeuvre_density,
+        unseen,
+        cfg.unseen_manoeuvre_density,
     )
+
+
+def _unseen(
+    obs: Observations, tid: int, t0: float, t1: float, cfg: EstimatorConfig
+) -> tuple[Segment, ...]:
+    """Where target ``tid``'s telemetry, the rough trajectory whose events make knots, has
+    holes longer than two base knot spacings and three sampling intervals
+    (:func:`~orbit_tracking.core.estimation.coverage.unsampled_spans`)."""
+    tel = obs.telemetry.get(tid) if cfg.use_telemetry else None
+    if tel is None or len(tel) < 4:
+        return ()
+    t = np.sort(np.asarray(tel.time, dtype=np.float64))
+    hole = max(2.0 * cfg.knots.base_spacing, 3.0 * float(np.median(np.diff(t))))
+    return tuple(unsampled_spans(t, t0, t1, hole, cfg.knots.event_window))
 
 
 def _rough_from_previous(prev: TargetSolution, t0: float, t1: float) -> RoughTrajectory | None:
@@ -494,6 +518,7 @@ def _estimate_once(
             selections[tid].events + selections[tid].doubtful,
             cfg,
             verdict.covariance_scale,
+            _unseen(obs, tid, t0, t1, cfg),
         )
         for tid in selections
     }

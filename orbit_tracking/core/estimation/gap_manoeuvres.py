@@ -36,6 +36,17 @@ acceleration on a grid across ``event +- half width`` stand for that unmodelled 
 data's information about them is taken into account as above (dense radar rows keep the
 term small, sparse samples leave it large).
 
+A third group of steps stands in the spans where the rough trajectory (the telemetry)
+has no samples, a telemetry outage: no event can be detected there, so a turn's ramps or
+a staging inside the outage get neither knots at their instants nor the term above, while
+the stations still measure (the segment is complete). The spline with the base knots
+rounds a 2-3 g turn's one-second ramp off; on the 35 aircraft draws of the robustness
+families, with a GPS outage over the turn, the velocity next to the ramps was 0.5-1.6 m/s
+off where its covariance claimed 0.02-0.1 m/s: most of the states beyond 5 sigma were
+within a second of a true ramp end inside an outage. Its density is
+``unseen_manoeuvre_density``, smaller than the incomplete segments' (the stations there
+see the manoeuvre, and the data's information on the steps is counted as above).
+
 A step moves every later row, so ``H_c`` is dense after its instant. But a row depends on
 the steps before it through a quadratic in ``tau``: its part of ``H_c`` is ``Q V``, ``Q``
 nine numbers per row and ``V`` the instants' powers. So ``H_c^T H_c`` and ``J^T H_c`` are
@@ -79,6 +90,8 @@ class GapManoeuvres:
     density: float
     event_density: float = 0.0
     event_spans: int = 0
+    unseen_density: float = 0.0
+    unseen_spans: int = 0
 
     @property
     def note(self) -> str:
@@ -90,6 +103,11 @@ class GapManoeuvres:
             parts.append(
                 f'{self.event_spans} spans around events (found or doubtful) leave '
                 f'unmodelled ({self.event_density:g} m^2/s^5)'
+            )
+        if self.unseen_density > 0.0:
+            parts.append(
+                f'{self.unseen_spans} spans where the rough trajectory had no samples may hide '
+                f'({self.unseen_density:.3g} m^2/s^5)'
             )
         return ' and '.join(parts) + f' ({self.taus.size} acceleration steps)'
 
@@ -158,22 +176,25 @@ def gap_manoeuvres(
     scale: float = 1.0,
     events: tuple[Segment, ...] = (),
     event_density: float = 0.0,
+    unseen: tuple[Segment, ...] = (),
+    unseen_density: float = 0.0,
 ) -> GapManoeuvres | None:
     """The consider term of ``target``: acceleration steps every ``step`` seconds inside
     ``segments`` (:func:`instants`), each standing for its share of a white jerk of
     density ``density`` (prior variance ``density * width``), and likewise inside the
-    spans ``events`` around detected events with density ``event_density``.
+    spans ``events`` around detected events with density ``event_density`` and inside the
+    ``unseen`` spans (where the rough trajectory had no samples) with ``unseen_density``.
 
     ``rows`` are the problem's per-row records (target, time, whitened d/d position and
     d/d velocity, telemetry flag) in the order of the rows of ``jac``; ``cov`` is
     ``(J^T J)^-1`` over all parameters and ``offset``, ``n_coef`` locate the target's
     coefficients in it. ``scale`` is the factor the window's covariance was scaled by for
-    its misfit (the data are that much less informative). None when neither group has
-    both a span and a positive density.
+    its misfit (the data are that much less informative). None when no group has both a
+    span and a positive density.
     """
     groups = [
         (tuple((float(a), float(b)) for a, b in spans if b > a), q)
-        for spans, q in ((segments, density), (events, event_density))
+        for spans, q in ((segments, density), (events, event_density), (unseen, unseen_density))
         if q > 0.0
     ]
     parts = [(*instants(spans, step), q) for spans, q in groups if spans]
@@ -237,4 +258,6 @@ def gap_manoeuvres(
         density=density if segments and density > 0.0 else 0.0,
         event_density=event_density if events and event_density > 0.0 else 0.0,
         event_spans=len(events) if event_density > 0.0 else 0,
+        unseen_density=unseen_density if unseen and unseen_density > 0.0 else 0.0,
+        unseen_spans=len(unseen) if unseen_density > 0.0 else 0,
     )
