@@ -173,7 +173,8 @@ JERK_ITERATIONS = 200
 JERK_Q_FLOOR = 1e-3
 """Smallest white-jerk density [m^2/s^5]. A trajectory without any jerk would pin the
 evidence to 0, and a window of straight flight after a telemetry outage did come out at
-1e-8: its spline nearly jerk-free, its velocity a quarter metre per second off at sigmas of
-centimetres per second (robustness aircraft draw 49, 120-151.7 s). 1e-3 is a jerk of
+1e-8 to 1e-5 (as a pass's last window, and solved alone): its spline nearly jerk-free, its
+velocity a quarter metre per second off at sigmas of two centimetres per second
+(robustness aircraft draw 49, 120-151.7 s). 1e-3 is a jerk of
 0.03 m/s^3 RMS over a second, far below any vehicle's (a turn's entry ramp has 20-30
 m/s^3), and leaves the estimate of a window that needs more untouched."""
