@@ -71,6 +71,7 @@ def test_a_short_seeded_slice_runs_end_to_end_and_fills_every_column():
         'better than KF+RTS',
         'silent failures: 0 over >= 200 draws',
         'no window over 3 s wall',
+        '`ours` by telemetry error model',
         'Worst draws',
         '--suite robustness --kind ascent --seed 1 --draws 1',
     ):
@@ -169,3 +170,45 @@ def test_a_velocity_off_by_more_than_five_sigma_is_a_silent_failure_too():
         0.1,
     )
     assert (m.silent, m.silent_velocity, m.silent_states) == (1, 2, 2)
+
+
+def test_the_targets_are_broken_down_by_telemetry_error_model():
+    """Per telemetry error model (draws without telemetry as ``none``): the draws, the
+    silent states and the draws with any, the shares of the targets; a draw whose `ours`
+    failed is left out of the breakdown."""
+    from orbit_tracking.tools.bench.robustness import _by_telemetry_table
+    from orbit_tracking.tools.bench.robustness_draw import OURS, DrawResult, MethodResult
+
+    def result(seed: int, model: str | None, silent: int, gap: float, nees: float) -> DrawResult:
+        m = MethodResult(
+            OURS,
+            pos_ratio_gap=gap,
+            pos_ratio_out=1.0,
+            nees_mean=nees,
+            nees_lo=2.0,
+            nees_hi=4.0,
+            nees_lo_correlated=1.5,
+            nees_hi_correlated=5.0,
+            silent_states=silent,
+            windows=2,
+        )
+        return DrawResult('ascent', seed, telemetry_model=model, methods=(m,))
+
+    failed = DrawResult(
+        'ascent', 9, telemetry_model='white', methods=(MethodResult(OURS, error='boom'),)
+    )
+    rows = _by_telemetry_table(
+        [
+            result(0, 'separate_velocity', 40, 1.2, 4.5),
+            result(1, 'separate_velocity', 0, 2.0, 3.0),
+            result(2, None, 3, math.nan, 1.0),
+            result(3, 'white', 0, 1.0, 3.0),
+            failed,
+        ]
+    )
+    body = {r.split(' | ')[0].strip('| '): r for r in rows[2:]}
+    assert list(body) == ['none', 'separate_velocity', 'white']
+    sv = body['separate_velocity']
+    assert '| 2 | 40; 1 | 50.0 % (1/2) | 100.0 % (2/2) | 50.0 % (1/2) | 100.0 % (2/2) |' in sv
+    assert '| 1 | 3; 1 | — |' in body['none']  # no gap: no share
+    assert '| 1 | 0; 0 |' in body['white']  # the failed draw is not counted
