@@ -502,9 +502,9 @@ def robustness_tables(run: RobustnessRun) -> str:
         "samples whose errors are correlated as the bound's at the same times, and how "
         'often an honest estimator as good as the bound would be inside the independent '
         'band (`orbit_tracking/core/metrics.py`, `correlated_nees_band`). Silent '
-        f'failures: output states (0.1 s) whose position error is beyond {SILENT_SIGMA:g} '
-        'of its own covariance in any direction (Mahalanobis distance; every output state: '
-        'failed windows are withheld). KF+RTS: jerk '
+        f'failures: output states (0.1 s) whose position or whose velocity error is beyond '
+        f'{SILENT_SIGMA:g} of its own covariance in any direction (Mahalanobis distance; '
+        'every output state: failed windows are withheld). KF+RTS: jerk '
         'density tuned on the truth of draws '
         f'{", ".join(map(str, KALMAN_TUNING_SEEDS))} of each kind, then fixed '
         f'({", ".join(f"{k} q = {v:.3g} m²/s⁵" for k, v in run.kalman_q.items())}), '
