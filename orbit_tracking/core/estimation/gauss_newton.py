@@ -287,61 +287,25 @@ def _lag1(e: FloatArray) -> float:
     return min(max(float(np.sum(c[1:] * c[:-1])) / den, 0.0), TELEMETRY_MAX_LAG1)
 
 
-def _long_run_ratio(e: FloatArray, lags: int) -> float:
-    """Long-run variance of the time-ordered rows of ``e`` (m, 3), pooled over the columns,
-    over their variance: ``1 + 2 sum_k (1 - k / (L + 1)) rho_k`` over the lags ``k = 1 ..
-    L`` (Bartlett's weights, which keep the estimate non-negative), ``L`` = ``lags`` but at
-    most a quarter of the rows; at least 1."""
-    lags = min(lags, e.shape[0] // 4)
-    if lags < 1:
-        return 1.0
-    c = e - e.mean(axis=0)
-    den = float(np.sum(c * c))
-    if den <= 0.0:
-        return 1.0
-    total = 1.0
-    for k in range(1, lags + 1):
-        total += 2.0 * (1.0 - k / (lags + 1.0)) * float(np.sum(c[k:] * c[:-k])) / den
-    return max(total, 1.0)
-
-
-def _reestimate_telemetry_noise(prob: Problem, beta: FloatArray, span: float) -> bool:
+def _reestimate_telemetry_noise(prob: Problem, beta: FloatArray) -> bool:
     """The telemetry's position and velocity noise levels from its residuals: their RMS,
-    inflated by the square root of the larger of two variance ratios (the variance of a
-    mean over many samples, against that of white residuals of the same RMS):
-
-    - ``(1 + rho) / (1 - rho)`` with ``rho`` their lag-1 autocorrelation (the effective
-      sample size of a first-order autoregressive error). Residuals that run in one
-      direction for many samples (a random walk, jumps, a time-tag skew: errors the error
-      spline does not follow) are that many fewer independent samples, and are weighed so.
-    - :func:`_long_run_ratio` over the lags within ``span`` seconds (the base knot
-      spacing: the trajectory's velocity over a knot interval is a mean of the samples
-      in it). White noise on top of an error correlated over a second or two (a velocity
-      of its own between the knots of ``w``) has a small lag-1 autocorrelation, and the
-      first-order formula took its mean over a second as ~20 independent samples
-      (robustness ascent draw 5: the trajectory's velocity 0.2 m/s off at sigmas of
-      0.04 m/s, 43 states beyond 5 sigma; none with it).
-
-    White residuals keep their RMS."""
+    inflated by ``sqrt((1 + rho) / (1 - rho))`` with ``rho`` their lag-1 autocorrelation
+    (the effective sample size of a first-order autoregressive error). Residuals that run
+    in one direction for many samples (a random walk, jumps, a time-tag skew, a velocity
+    from another source: errors the error spline does not follow) are that many fewer
+    independent samples, and are weighed so; white residuals keep their RMS."""
     changed = False
     for tb in prob.telemetry:
         dp, dv = prob.telemetry_residuals(tb, beta)
         use_p, use_v = prob.telemetry_use(tb)
         order = np.argsort(tb.time, kind='stable')
-        t_sorted = tb.time[order]
+        ep, ev = dp[order][use_p[order]], dv[order][use_v[order]]
         new = list(tb.noise)
-        for k, (d, use, floor) in enumerate(((dp, use_p, 1e-3), (dv, use_v, 1e-5))):
-            e = d[order][use[order]]
+        for k, (e, floor) in enumerate(((ep, 1e-3), (ev, 1e-5))):
             if e.size:
                 rho = _lag1(e)
-                ratio = (1.0 + rho) / (1.0 - rho)
-                ts = t_sorted[use[order]]
-                if ts.size > 1:
-                    dt = float(np.median(np.diff(ts)))
-                    if dt > 0.0:
-                        ratio = max(ratio, _long_run_ratio(e, int(round(span / dt))))
                 rms = float(np.sqrt(np.mean(e**2)))
-                new[k] = max(rms * math.sqrt(ratio), floor)
+                new[k] = max(rms * math.sqrt((1.0 + rho) / (1.0 - rho)), floor)
         if any(abs(a - b) > 0.05 * b for a, b in zip(new, tb.noise, strict=True)):
             changed = True
         tb.noise = new
@@ -563,7 +527,7 @@ def solve(
     for _ in range(max(cfg.gate_rounds, 1)):
         changed = False
         if cfg.estimate_telemetry_noise and prob.telemetry:
-            changed |= _reestimate_telemetry_noise(prob, out.beta, cfg.knots.base_spacing)
+            changed |= _reestimate_telemetry_noise(prob, out.beta)
         changed |= reestimate_priors(prob, out.beta, cfg)
         if cfg.estimate_station_noise:
             changed |= reestimate_station_noise(prob, out.beta)
