@@ -24,7 +24,8 @@ import pytest
 from orbit_tracking.core.estimation.config import EstimatorConfig
 from orbit_tracking.core.estimation.estimator import estimate
 from orbit_tracking.core.sim.families import TELEMETRY_MODELS
-from orbit_tracking.tools.bench.robustness_draw import _case, run_draw
+from orbit_tracking.tools.bench.robustness import GAP_TARGET
+from orbit_tracking.tools.bench.robustness_draw import _bounds, _case, run_draw
 
 SEED, SPAN = 4, 40.0
 
@@ -172,13 +173,24 @@ def _gap_rms(case, est) -> float:
     return float(np.sqrt(np.mean(np.sum(e**2, axis=1))))
 
 
+def _gap_bound(case) -> float:
+    """The draw's stations+telemetry Cramér-Rao bound, RMS over the incomplete segment."""
+    b = _bounds(case)[0]['stations+telemetry']
+    return float(np.sqrt(np.mean(b.position_var[case.in_gap])))
+
+
 @pytest.mark.timeout(120)
 def test_a_separate_velocity_error_gets_faster_knots_only_when_its_residuals_ask():
     """Telemetry velocity from another source, its error drifting within seconds (family
     seed 12, 40 s: an incomplete segment at the start with one theodolite): the score test
     halves the separate error's knot spacing twice, to 5 s, and the trajectory in the
-    segment is better than with the 20 s error (gap RMS 1.06 m -> 0.67 m with one BLAS
-    thread, 1.11 m -> 0.82 m with two, when written: the window is sensitive to rounding).
+    segment is within the issue's gap target (1.5 bounds). When written, the 20 s error
+    left 1.1-1.7 m in the segment (5 bounds) and the 5 s one 0.25-0.8 m; since the
+    telemetry velocity noise counts its correlation over a knot interval
+    (:mod:`.telemetry_noise`, the long-run ratio with ``w``) the 20 s error's leftovers are
+    no longer weighed as white and both are within the bound on this draw (0.18 m and
+    0.32 m against 0.32 m), so the gain is not asserted on it; on the 35-draw ascent family
+    holding ``w`` at 20 s gave 189 silent states against 114 with the test.
     A slow velocity error (seed 94, time constant 55 s) is tested and left at 20 s: the
     same solve as without the test. Time-tag delays off: their test is near its threshold
     on this draw and would decide by rounding."""
@@ -190,7 +202,7 @@ def test_a_separate_velocity_error_gets_faster_knots_only_when_its_residuals_ask
     assert fast.success and slow.success, (fast.message, slow.message)
     assert 'velocity error knots every 5 s asked for' in fast.message, fast.message
     assert 'knots every' not in slow.message
-    assert _gap_rms(case, fast) < 0.85 * _gap_rms(case, slow)
+    assert _gap_rms(case, fast) < GAP_TARGET * _gap_bound(case)
 
     case = _case('ascent', 94, SPAN, 'separate_velocity')
     tested = estimate(case.obs_est, 0.0, SPAN, on)

@@ -34,6 +34,7 @@ from orbit_tracking.core.estimation.config import EstimationError, EstimatorConf
 from orbit_tracking.core.estimation.priors import reestimate_priors
 from orbit_tracking.core.estimation.problem import ROBUST_KINDS, GateKey, Problem
 from orbit_tracking.core.estimation.scaling import jacobi_scaled, normal_matrix, scaled_solve
+from orbit_tracking.core.estimation.telemetry_noise import reestimate_telemetry_noise
 from orbit_tracking.core.models.measurements import residual
 
 __all__ = [
@@ -271,47 +272,6 @@ def gate_residuals(prob: Problem, beta: FloatArray, limits: Mapping[str, float])
     return changed
 
 
-TELEMETRY_MAX_LAG1 = 0.99
-"""Largest lag-1 autocorrelation taken from telemetry residuals (inflation at most 14x)."""
-
-
-def _lag1(e: FloatArray) -> float:
-    """Lag-1 autocorrelation of the rows of ``e`` (m, 3), time-ordered, pooled over the
-    columns, clipped to [0, :data:`TELEMETRY_MAX_LAG1`]."""
-    if e.shape[0] < 3:
-        return 0.0
-    c = e - e.mean(axis=0)
-    den = float(np.sum(c * c))
-    if den <= 0.0:
-        return 0.0
-    return min(max(float(np.sum(c[1:] * c[:-1])) / den, 0.0), TELEMETRY_MAX_LAG1)
-
-
-def _reestimate_telemetry_noise(prob: Problem, beta: FloatArray) -> bool:
-    """The telemetry's position and velocity noise levels from its residuals: their RMS,
-    inflated by ``sqrt((1 + rho) / (1 - rho))`` with ``rho`` their lag-1 autocorrelation
-    (the effective sample size of a first-order autoregressive error). Residuals that run
-    in one direction for many samples (a random walk, jumps, a time-tag skew, a velocity
-    from another source: errors the error spline does not follow) are that many fewer
-    independent samples, and are weighed so; white residuals keep their RMS."""
-    changed = False
-    for tb in prob.telemetry:
-        dp, dv = prob.telemetry_residuals(tb, beta)
-        use_p, use_v = prob.telemetry_use(tb)
-        order = np.argsort(tb.time, kind='stable')
-        ep, ev = dp[order][use_p[order]], dv[order][use_v[order]]
-        new = list(tb.noise)
-        for k, (e, floor) in enumerate(((ep, 1e-3), (ev, 1e-5))):
-            if e.size:
-                rho = _lag1(e)
-                rms = float(np.sqrt(np.mean(e**2)))
-                new[k] = max(rms * math.sqrt((1.0 + rho) / (1.0 - rho)), floor)
-        if any(abs(a - b) > 0.05 * b for a, b in zip(new, tb.noise, strict=True)):
-            changed = True
-        tb.noise = new
-    return changed
-
-
 NOISE_MIN_VALUES = 30
 """A station field's noise level is re-estimated from at least this many residuals."""
 
@@ -527,7 +487,7 @@ def solve(
     for _ in range(max(cfg.gate_rounds, 1)):
         changed = False
         if cfg.estimate_telemetry_noise and prob.telemetry:
-            changed |= _reestimate_telemetry_noise(prob, out.beta)
+            changed |= reestimate_telemetry_noise(prob, out.beta, cfg.knots.base_spacing)
         changed |= reestimate_priors(prob, out.beta, cfg)
         if cfg.estimate_station_noise:
             changed |= reestimate_station_noise(prob, out.beta)
