@@ -156,6 +156,10 @@ class EstimatorConfig:
         Rounds of measurement-driven knot insertion after the solve (0 = off).
     refine_alpha : float
         Family-wise false-alarm probability of that knot test.
+    gate_event_rounds : int
+        Rounds of events put where the residual gate's rejected station values cluster in
+        time (a staging no knot follows: :mod:`~orbit_tracking.core.estimation.
+        gate_events`), each followed by a new solve; 0 = off.
     refine_events : bool
         Let that test also insert events (a knot of multiplicity ``degree - 1`` on every
         axis: the acceleration may jump there) where the measurements ask for one, outside
@@ -253,6 +257,7 @@ class EstimatorConfig:
     prune_z: float = 0.0
     refine_alpha: float = 0.01
     refine_events: bool = False
+    gate_event_rounds: int = 2
     biases: tuple[BiasParameter, ...] = ()
     bias_observability: float = 0.9
     thrust_along_velocity: float = 0.0
@@ -290,6 +295,8 @@ class EstimatorConfig:
             )
         if self.gate_sigma < 0.0 or self.fix_weight < 0.0:
             raise ValueError('gate_sigma and fix_weight must be >= 0')
+        if self.gate_event_rounds < 0:
+            raise ValueError(f'gate_event_rounds must be >= 0; got {self.gate_event_rounds}')
         if self.robust_loss not in ROBUST_LOSSES:
             raise ValueError(
                 f'robust_loss must be one of {ROBUST_LOSSES}; got {self.robust_loss!r}'

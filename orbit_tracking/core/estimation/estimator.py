@@ -62,6 +62,7 @@ from orbit_tracking.core.estimation.gap_manoeuvres import (
     event_spans,
     gap_manoeuvres,
 )
+from orbit_tracking.core.estimation.gate_events import gate_cluster_events, with_events
 from orbit_tracking.core.estimation.gauss_newton import covariance, solve
 from orbit_tracking.core.estimation.knot_refinement import (
     choose_knots_safely,
@@ -461,6 +462,30 @@ def _estimate_once(
         iterations += it2
         halvings += h2
         r, jac, cov, cond, singular = covariance(prob, out.beta)
+    gate_events: dict[int, list[float]] = {}
+    for _ in range(cfg.gate_event_rounds):
+        found = gate_cluster_events(prob, segments, t0, t1)
+        if not found:
+            break
+        new_axes = {
+            tid: with_events(prob.trajs[tid].axes, taus, cfg.knots.min_spacing)
+            for tid, taus in found.items()
+        }
+        prob, beta = rebuild(prob, out.beta, new_axes, {}, obs, cfg, t0, t1)
+        for tid, taus in found.items():
+            gate_events.setdefault(tid, []).extend(taus)
+            knotted = tuple(sorted(selections[tid].events + tuple(taus)))
+            selections[tid] = replace(selections[tid], trajectory=prob.trajs[tid], events=knotted)
+        prob.gated.clear()  # the values the missed event spoiled are decided afresh
+        out, it2, h2 = solve(prob, beta, cfg)
+        iterations += it2
+        halvings += h2
+        r, jac, cov, cond, singular = covariance(prob, out.beta)
+    for tid, taus in gate_events.items():
+        refine_note += (
+            f'; target {tid} events where the gate rejections clustered: '
+            + ', '.join(f'{t:.2f} s' for t in taus)
+        )
     for tid, n_added in added.items():
         selections[tid] = replace(selections[tid], refined=n_added, pruned=pruned[tid])
     solve_time = _time.perf_counter() - s_start
