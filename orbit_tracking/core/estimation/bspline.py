@@ -247,6 +247,18 @@ class SplineTrajectory:
     def n_coef(self) -> int:
         return self.offsets[3]
 
+    @property
+    def n_interior(self) -> int:
+        """Interior knots over the three axes."""
+        return sum(a.interior.size for a in self.axes)
+
+    def repeated_knots(self) -> FloatArray:
+        """Interior knots repeated on an axis (events: a jump the spline may take there),
+        one entry per axis that repeats them."""
+        return np.concatenate(
+            [v[c > 1] for v, c in (np.unique(a.interior, return_counts=True) for a in self.axes)]
+        )
+
     def with_axes(self, axes: Sequence[SplineAxis]) -> SplineTrajectory:
         return SplineTrajectory((axes[0], axes[1], axes[2]), self.origin, self.rotation)
 

@@ -51,6 +51,7 @@ from numpy.typing import NDArray
 
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.errors import OrbitTrackingError
+from orbit_tracking.core.estimation.bspline import SplineAxis
 from orbit_tracking.core.estimation.config import EstimationError, EstimatorConfig, Segment
 from orbit_tracking.core.estimation.coverage import (
     find_incomplete_segments,
@@ -63,7 +64,7 @@ from orbit_tracking.core.estimation.gap_manoeuvres import (
     gap_manoeuvres,
 )
 from orbit_tracking.core.estimation.gate_events import gate_cluster_events, with_events
-from orbit_tracking.core.estimation.gauss_newton import covariance, solve
+from orbit_tracking.core.estimation.gauss_newton import GnOutcome, covariance, solve
 from orbit_tracking.core.estimation.knot_refinement import (
     choose_knots_safely,
     polynomial_selection,
@@ -297,16 +298,25 @@ def _estimate_once(
         _, _, cov0, _, _ = covariance(prob, beta)
         freeze_unobservable(prob, beta, cov0, cfg, 'before the solve')
     start = beta.copy()
-    out, iterations, halvings = solve(prob, beta, cfg)
-    r, jac, cov, cond, singular = covariance(prob, out.beta)
+    iterations = halvings = 0
+
+    def solve_on(
+        p: Problem, b: FloatArray, warm_up: bool = True
+    ) -> tuple[GnOutcome, FloatArray, sp.csr_matrix, FloatArray, float, bool]:
+        """Solve ``p`` from ``b`` (counting the iterations), with the covariance."""
+        nonlocal iterations, halvings
+        assert cfg is not None  # (mypy: cfg is rebound below, to a finer velocity error)
+        o, i2, h2 = solve(p, b, cfg, warm_up=warm_up)
+        iterations += i2
+        halvings += h2
+        return (o, *covariance(p, o.beta))
+
+    out, r, jac, cov, cond, singular = solve_on(prob, beta)
     if freeze_unobservable(prob, out.beta, cov, cfg, 'at the solution'):
         # solve again from the start: the frozen biases must not leave their pull in the
         # trajectory through a flat valley of the cost
         prob.gated.clear()
-        out, it2, h2 = solve(prob, start, cfg)
-        iterations += it2
-        halvings += h2
-        r, jac, cov, cond, singular = covariance(prob, out.beta)
+        out, r, jac, cov, cond, singular = solve_on(prob, start)
     noisy = [t for t, s in selections.items() if s.rough_source == 'fixes']
     if noisy and cfg.knot_method == 'sparse':
         # fixes are a poor rough trajectory (no velocity, metres of noise): select the
@@ -359,20 +369,14 @@ def _estimate_once(
             first.bias_offset : first.bias_offset + nb
         ]
         prob.bias_sigma, prob.bias_status = first.bias_sigma, first.bias_status
-        out, it2, h2 = solve(prob, beta, cfg)
-        iterations += it2
-        halvings += h2
-        r, jac, cov, cond, singular = covariance(prob, out.beta)
+        out, r, jac, cov, cond, singular = solve_on(prob, beta)
     tel_note = ''
     if cfg.telemetry_delays == 'auto' and prob.telemetry:
         d_tests = delay_test(prob, out.beta, obs, cfg, t0, t1)
         add = {t.target: True for t in d_tests if t.delays}
         if add:
             prob, beta = rebuild(prob, out.beta, {}, {}, obs, cfg, t0, t1, tel_delays=add)
-            out, it2, h2 = solve(prob, beta, cfg, warm_up=False)
-            iterations += it2
-            halvings += h2
-            r, jac, cov, cond, singular = covariance(prob, out.beta)
+            out, r, jac, cov, cond, singular = solve_on(prob, beta, warm_up=False)
         tel_note = ''.join(
             f'; telemetry {t.target} time-tag delays '
             + ('estimated' if t.delays else 'not estimated')
@@ -393,10 +397,7 @@ def _estimate_once(
         switch = {t.target: True for t in tests if t.separate}
         if switch:
             prob, beta = rebuild(prob, out.beta, {}, {}, obs, cfg, t0, t1, switch)
-            out, it2, h2 = solve(prob, beta, cfg, warm_up=False)
-            iterations += it2
-            halvings += h2
-            r, jac, cov, cond, singular = covariance(prob, out.beta)
+            out, r, jac, cov, cond, singular = solve_on(prob, beta, warm_up=False)
         tel_note += ''.join(
             f'; telemetry {t.target} velocity error '
             + ('of its own' if t.separate else '= d/dt position error')
@@ -417,25 +418,30 @@ def _estimate_once(
         if finer is None:
             break
         cfg, prob, beta = finer  # the problem the test was made on
-        out, it2, h2 = solve(prob, beta, cfg, warm_up=False)
-        iterations += it2
-        halvings += h2
-        r, jac, cov, cond, singular = covariance(prob, out.beta)
+        out, r, jac, cov, cond, singular = solve_on(prob, beta, warm_up=False)
+
+    def on_new_knots(
+        axes: Mapping[int, list[SplineAxis]], tel: Mapping[int, SplineAxis] | None = None
+    ) -> tuple[Problem, FloatArray, dict[int, int]]:
+        """The problem rebuilt on new knots from the current solution (the selections
+        follow it), its start, and the change of each target's interior knot count."""
+        assert cfg is not None
+        p, b = rebuild(prob, out.beta, axes, tel or {}, obs, cfg, t0, t1)
+        change = {}
+        for tid in axes:
+            change[tid] = p.trajs[tid].n_interior - selections[tid].trajectory.n_interior
+            selections[tid] = replace(selections[tid], trajectory=p.trajs[tid])
+        return p, b, change
+
     pruned = {tid: 0 for tid in selections}
     if cfg.prune_z > 0.0 and cfg.knot_method == 'sparse':
         # knots the measurements do not support go before the knot test adds any
         reduced = prune_knots(prob, out.beta, cov, cfg.prune_z)
         if reduced:
-            prob, beta = rebuild(prob, out.beta, reduced, {}, obs, cfg, t0, t1)
-            for tid in reduced:
-                pruned[tid] = sum(a.interior.size for a in selections[tid].trajectory.axes) - sum(
-                    a.interior.size for a in prob.trajs[tid].axes
-                )
-                selections[tid] = replace(selections[tid], trajectory=prob.trajs[tid])
-            out, it2, h2 = solve(prob, beta, cfg, warm_up=False)
-            iterations += it2
-            halvings += h2
-            r, jac, cov, cond, singular = covariance(prob, out.beta)
+            prob, beta, change = on_new_knots(reduced)
+            for tid, n in change.items():
+                pruned[tid] = -n
+            out, r, jac, cov, cond, singular = solve_on(prob, beta, warm_up=False)
     added = {tid: 0 for tid in selections}
     refine_note = ''
     for _ in range(cfg.refine_rounds):
@@ -451,17 +457,11 @@ def _estimate_once(
         new_axes, new_tel = refine_knots(prob, r, jac, cov, cfg, segments)
         if not new_axes and not new_tel:
             break
-        prob, beta = rebuild(prob, out.beta, new_axes, new_tel, obs, cfg, t0, t1)
-        for tid, axes in new_axes.items():
-            added[tid] += sum(a.interior.size for a in axes) - sum(
-                a.interior.size for a in selections[tid].trajectory.axes
-            )
-            selections[tid] = replace(selections[tid], trajectory=prob.trajs[tid])
+        prob, beta, change = on_new_knots(new_axes, new_tel)
+        for tid, n in change.items():
+            added[tid] += n
         # the refined problem carries the gates over (rebuild): no warm-up to decide them
-        out, it2, h2 = solve(prob, beta, cfg, warm_up=False)
-        iterations += it2
-        halvings += h2
-        r, jac, cov, cond, singular = covariance(prob, out.beta)
+        out, r, jac, cov, cond, singular = solve_on(prob, beta, warm_up=False)
     gate_events: dict[int, list[float]] = {}
     for _ in range(cfg.gate_event_rounds):
         found = gate_cluster_events(prob, segments, t0, t1)
@@ -471,16 +471,13 @@ def _estimate_once(
             tid: with_events(prob.trajs[tid].axes, taus, cfg.knots.min_spacing)
             for tid, taus in found.items()
         }
-        prob, beta = rebuild(prob, out.beta, new_axes, {}, obs, cfg, t0, t1)
+        prob, beta, _ = on_new_knots(new_axes)
         for tid, taus in found.items():
             gate_events.setdefault(tid, []).extend(taus)
             knotted = tuple(sorted(selections[tid].events + tuple(taus)))
-            selections[tid] = replace(selections[tid], trajectory=prob.trajs[tid], events=knotted)
+            selections[tid] = replace(selections[tid], events=knotted)
         prob.gated.clear()  # the values the missed event spoiled are decided afresh
-        out, it2, h2 = solve(prob, beta, cfg)
-        iterations += it2
-        halvings += h2
-        r, jac, cov, cond, singular = covariance(prob, out.beta)
+        out, r, jac, cov, cond, singular = solve_on(prob, beta)
     for tid, taus in gate_events.items():
         refine_note += (
             f'; target {tid} events where the gate rejections clustered: '

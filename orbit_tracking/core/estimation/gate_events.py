@@ -79,9 +79,7 @@ def gate_cluster_events(
         traj = prob.trajs.get(tid)
         if traj is None:
             continue
-        knotted = np.concatenate(
-            [v[c > 1] for v, c in (np.unique(ax.interior, return_counts=True) for ax in traj.axes)]
-        )
+        knotted = traj.repeated_knots()
         found = [
             tau
             for tau in _clusters(np.sort(np.concatenate(parts)))

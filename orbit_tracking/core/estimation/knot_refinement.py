@@ -222,9 +222,7 @@ def _events(
         # only be a worse-conditioned stand-in for moving it (seen: the search put one
         # between two detected staging events 1 s apart, and the fit got worse).
         p = traj.axes[0].degree
-        multiple = np.concatenate(
-            [v[c > 1] for v, c in (np.unique(ax.interior, return_counts=True) for ax in traj.axes)]
-        )
+        multiple = traj.repeated_knots()
         regions = [
             reg
             for reg in regions

@@ -24,16 +24,22 @@ TELEMETRY_MAX_LAG1 = 0.99
 """Largest lag-1 autocorrelation taken from telemetry residuals (inflation at most 14x)."""
 
 
+def _autocorrelations(e: FloatArray, lags: int) -> FloatArray:
+    """Autocorrelations at lags ``1 .. lags`` of the time-ordered rows of ``e`` (m, 3),
+    pooled over the columns (all zero for constant rows)."""
+    c = e - e.mean(axis=0)
+    den = float(np.sum(c * c))
+    if den <= 0.0:
+        return np.zeros(lags)
+    return np.array([float(np.sum(c[k:] * c[:-k])) / den for k in range(1, lags + 1)])
+
+
 def lag1(e: FloatArray) -> float:
     """Lag-1 autocorrelation of the rows of ``e`` (m, 3), time-ordered, pooled over the
     columns, clipped to [0, :data:`TELEMETRY_MAX_LAG1`]."""
     if e.shape[0] < 3:
         return 0.0
-    c = e - e.mean(axis=0)
-    den = float(np.sum(c * c))
-    if den <= 0.0:
-        return 0.0
-    return min(max(float(np.sum(c[1:] * c[:-1])) / den, 0.0), TELEMETRY_MAX_LAG1)
+    return min(max(float(_autocorrelations(e, 1)[0]), 0.0), TELEMETRY_MAX_LAG1)
 
 
 def long_run_ratio(e: FloatArray, lags: int) -> float:
@@ -44,14 +50,9 @@ def long_run_ratio(e: FloatArray, lags: int) -> float:
     lags = min(lags, e.shape[0] // 4)
     if lags < 1:
         return 1.0
-    c = e - e.mean(axis=0)
-    den = float(np.sum(c * c))
-    if den <= 0.0:
-        return 1.0
-    total = 1.0
-    for k in range(1, lags + 1):
-        total += 2.0 * (1.0 - k / (lags + 1.0)) * float(np.sum(c[k:] * c[:-k])) / den
-    return max(total, 1.0)
+    k = np.arange(1, lags + 1)
+    weights = 1.0 - k / (lags + 1.0)
+    return max(1.0 + 2.0 * float(np.sum(weights * _autocorrelations(e, lags))), 1.0)
 
 
 def reestimate_telemetry_noise(prob: Problem, beta: FloatArray, span: float) -> bool:
