@@ -8,7 +8,6 @@ import pytest
 import scipy.sparse as sp
 
 from orbit_tracking.core.estimation.bspline import SplineAxis, SplineTrajectory
-from orbit_tracking.core.estimation.config import EstimatorConfig
 from orbit_tracking.core.estimation.gap_manoeuvres import (
     MAX_INSTANTS,
     event_spans,
@@ -173,10 +172,7 @@ def _staging_in_a_segment(density: float):
 
     case = _case('ascent', 78)
     cfg = EstimatorConfig(
-        gap_manoeuvre_density=density,
-        event_manoeuvre_density=0.0,
-        unseen_manoeuvre_density=0.0,
-        background_manoeuvre_density=0.0,
+        gap_manoeuvre_density=density, event_manoeuvre_density=0.0, unseen_manoeuvre_density=0.0
     )
     est = estimate(case.obs_est, 40.0, 95.1, cfg)
     sel = (case.truth_t >= 55.0) & (case.truth_t <= 65.0)
@@ -232,7 +228,6 @@ def _turn_window(density: float):
         180.0,
         event_manoeuvre_density=density,
         unseen_manoeuvre_density=0.0,
-        background_manoeuvre_density=0.0,
     )
 
 
@@ -245,8 +240,7 @@ def _staging_without_telemetry(density: float):
     from orbit_tracking.tools.bench.robustness_draw import _case
 
     case = _case('ascent', 7)
-    cfg = EstimatorConfig(event_manoeuvre_density=density, background_manoeuvre_density=0.0)
-    est = estimate(case.obs_est, 0.0, 60.0, cfg)
+    est = estimate(case.obs_est, 0.0, 60.0, EstimatorConfig(event_manoeuvre_density=density))
     sol = est.targets[0]
     sel = (case.truth_t >= 0.0) & (case.truth_t <= 60.0)
     tt = case.truth_t[sel][::2]
@@ -278,23 +272,7 @@ def _turn_in_an_outage(density: float):
     """Robustness draw aircraft 35 (1 Hz quantised GPS, two ship radars and a camera), its
     window 0-60 s: a turn entered by a ramp at 16.76-17.77 s, inside the GPS outage
     15.565-40.768 s, so no event is found for it; the states from 10 to 25 s."""
-    return _aircraft_window(
-        35,
-        0.0,
-        60.0,
-        10.0,
-        25.0,
-        unseen_manoeuvre_density=density,
-        background_manoeuvre_density=0.0,
-    )
-
-
-def _ramp_nothing_found(density: float):
-    """Robustness draw aircraft 5 (5 Hz GPS of 0.2 m/s velocity noise with position
-    jumps), its last window 120-149.8 s: two turn ramps (133.83-136.35 and 145.51-148.04
-    s) that neither the telemetry's event detector (not even as doubtful) nor the knot
-    test found; the states from 128 to 148 s."""
-    return _aircraft_window(5, 120.0, 149.8, 128.0, 148.0, background_manoeuvre_density=density)
+    return _aircraft_window(35, 0.0, 60.0, 10.0, 25.0, unseen_manoeuvre_density=density)
 
 
 @pytest.mark.timeout(300)
@@ -307,11 +285,6 @@ def _ramp_nothing_found(density: float):
             10.0,
             '1 spans where the rough trajectory had no samples may hide (10',
         ),
-        (
-            _ramp_nothing_found,
-            EstimatorConfig().background_manoeuvre_density,
-            'the knots may leave unfollowed anywhere',
-        ),
     ],
 )
 def test_a_turn_the_knots_follow_only_roughly_widens_the_velocity_covariance(
@@ -321,9 +294,8 @@ def test_a_turn_the_knots_follow_only_roughly_widens_the_velocity_covariance(
     tenths off near the turn's ramp ends: a ramp end the detector placed off (aircraft 78,
     measured: 32 states beyond 5 sigma) or a ramp inside a GPS outage that nothing found
     (aircraft 35, 0.5-1.6 m/s off at sigmas of 0.02-0.1 m/s; measured: 17, the worst at
-    17), or ramps nothing found (aircraft 5, 0.2 m/s off at 0.05 m/s, the window-wide
-    term; measured: 21, the worst at 9.5). With it at most a few remain (measured: none in
-    any of the three), and the estimate is the same."""
+    17). With it at most a few remain (measured: none in either), and the estimate is the
+    same."""
     res, sol, x, maha = window(density)
     assert res.success, res.message
     assert sol.manoeuvres is not None

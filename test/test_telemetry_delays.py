@@ -140,11 +140,8 @@ def test_events_moved_to_the_velocity_delay_keep_a_staging_in_a_segment_honest(m
         lambda prob, out, *_: (prob, out, 0, 0, ''),
     )
     # the telemetry is out over part of the segment: that span's consider term (issue 14,
-    # unseen_manoeuvre_density) and the window-wide one (background_manoeuvre_density) are
-    # turned off to see the failure this move removes
-    est_off, maha_off, (_, _, d_v_off, _) = window(
-        EstimatorConfig(unseen_manoeuvre_density=0.0, background_manoeuvre_density=0.0)
-    )
+    # unseen_manoeuvre_density) is turned off to see the failure this move removes
+    est_off, maha_off, (_, _, d_v_off, _) = window(EstimatorConfig(unseen_manoeuvre_density=0.0))
     assert 'events moved' not in est_off.message
     assert abs(d_v_off - true_dv) > 0.01  # the biased delay the move removes
     assert maha_off > 5.0  # and the silent failure

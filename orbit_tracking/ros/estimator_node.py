@@ -401,17 +401,6 @@ class EstimatorNode(WindowOutputs, StationInputs):
                 min_value=0.0,
                 max_value=1e6,
             ),
-            background_manoeuvre_density=declare(
-                self,
-                'background_manoeuvre_density',
-                0.3,
-                'Density [m^2/s^5] of the same consider term across the whole window: a change '
-                'of acceleration too faint in the data for a knot (a turn entry in noisy '
-                'telemetry) that the spline rounds off. The estimate does not change. 0 = off.',
-                read_only=True,
-                min_value=0.0,
-                max_value=1e6,
-            ),
             edge_gap=declare(
                 self,
                 'edge_gap',

@@ -217,13 +217,6 @@ class EstimatorConfig:
         telemetry (the rough trajectory whose events make knots) has no samples, widened
         by ``knots.event_window``: a turn or a staging inside a telemetry outage has no
         event found, no knots at its instants and none of the term above. 0 = off.
-    background_manoeuvre_density : float
-        Density q [m^2/s^5] of the same consider term across the whole window: a change of
-        acceleration that neither the rough trajectory nor the measurements showed
-        strongly enough for a knot (an aircraft's turn entry in noisy telemetry) leaves the
-        spline rounding it, tenths of a metre per second off at centimetre sigmas. Small
-        (a Kalman filter needs many times more as process noise): the knots follow what the
-        data show, the term covers what they may have missed. 0 = off.
     gm : float
         Gravitational parameter [m^3/s^2] of that constraint.
     segments : tuple of (start, end)
@@ -276,7 +269,6 @@ class EstimatorConfig:
     event_manoeuvre_density: float = 30.0
     event_manoeuvre_half_width: float = 3.0
     unseen_manoeuvre_density: float = 10.0
-    background_manoeuvre_density: float = 0.3
     gm: float = 3.986005e14
     segments: tuple[Segment, ...] = ()
     detect_segments: bool = True
@@ -326,11 +318,6 @@ class EstimatorConfig:
             raise ValueError(
                 f'event_manoeuvre_density must lie in [0, 1e6] m^2/s^5; got '
                 f'{self.event_manoeuvre_density}'
-            )
-        if not 0.0 <= self.background_manoeuvre_density <= 1e6:
-            raise ValueError(
-                f'background_manoeuvre_density must lie in [0, 1e6] m^2/s^5; got '
-                f'{self.background_manoeuvre_density}'
             )
         if not 0.0 <= self.unseen_manoeuvre_density <= 1e6:
             raise ValueError(

@@ -126,16 +126,14 @@ def _gap_manoeuvres(
     unseen: tuple[Segment, ...] = (),
 ) -> GapManoeuvres | None:
     """The consider term of the manoeuvres target ``tid``'s incomplete segments and the
-    ``unseen`` spans of its telemetry may hide, of the detail its ``events`` leave
-    unmodelled and of those its knots may leave unfollowed anywhere (None when none
-    applies)."""
+    ``unseen`` spans of its telemetry may hide and of the detail its ``events`` leave
+    unmodelled (None when none applies)."""
     traj = prob.trajs[tid]
     spans = event_spans(events, cfg.event_manoeuvre_half_width, traj.t0, traj.t1)
     if jac is None or not (
         (segs and cfg.gap_manoeuvre_density > 0.0)
         or (spans and cfg.event_manoeuvre_density > 0.0)
         or (unseen and cfg.unseen_manoeuvre_density > 0.0)
-        or cfg.background_manoeuvre_density > 0.0
     ):
         return None
     return gap_manoeuvres(
@@ -153,8 +151,6 @@ def _gap_manoeuvres(
         cfg.event_manoeuvre_density,
         unseen,
         cfg.unseen_manoeuvre_density,
-        ((traj.t0, traj.t1),),
-        cfg.background_manoeuvre_density,
     )
 
 

@@ -92,7 +92,6 @@ class GapManoeuvres:
     event_spans: int = 0
     unseen_density: float = 0.0
     unseen_spans: int = 0
-    background_density: float = 0.0
 
     @property
     def note(self) -> str:
@@ -109,10 +108,6 @@ class GapManoeuvres:
             parts.append(
                 f'{self.unseen_spans} spans where the rough trajectory had no samples may hide '
                 f'({self.unseen_density:.3g} m^2/s^5)'
-            )
-        if self.background_density > 0.0:
-            parts.append(
-                f'the knots may leave unfollowed anywhere ({self.background_density:.3g} m^2/s^5)'
             )
         return ' and '.join(parts) + f' ({self.taus.size} acceleration steps)'
 
@@ -183,15 +178,12 @@ def gap_manoeuvres(
     event_density: float = 0.0,
     unseen: tuple[Segment, ...] = (),
     unseen_density: float = 0.0,
-    background: tuple[Segment, ...] = (),
-    background_density: float = 0.0,
 ) -> GapManoeuvres | None:
     """The consider term of ``target``: acceleration steps every ``step`` seconds inside
     ``segments`` (:func:`instants`), each standing for its share of a white jerk of
     density ``density`` (prior variance ``density * width``), and likewise inside the
-    spans ``events`` around detected events with density ``event_density``, inside the
-    ``unseen`` spans (where the rough trajectory had no samples) with ``unseen_density``
-    and across the ``background`` spans (the whole window) with ``background_density``.
+    spans ``events`` around detected events with density ``event_density`` and inside the
+    ``unseen`` spans (where the rough trajectory had no samples) with ``unseen_density``.
 
     ``rows`` are the problem's per-row records (target, time, whitened d/d position and
     d/d velocity, telemetry flag) in the order of the rows of ``jac``; ``cov`` is
@@ -202,12 +194,7 @@ def gap_manoeuvres(
     """
     groups = [
         (tuple((float(a), float(b)) for a, b in spans if b > a), q)
-        for spans, q in (
-            (segments, density),
-            (events, event_density),
-            (unseen, unseen_density),
-            (background, background_density),
-        )
+        for spans, q in ((segments, density), (events, event_density), (unseen, unseen_density))
         if q > 0.0
     ]
     parts = [(*instants(spans, step), q) for spans, q in groups if spans]
@@ -273,5 +260,4 @@ def gap_manoeuvres(
         event_spans=len(events) if event_density > 0.0 else 0,
         unseen_density=unseen_density if unseen and unseen_density > 0.0 else 0.0,
         unseen_spans=len(unseen) if unseen_density > 0.0 else 0,
-        background_density=background_density if background else 0.0,
     )
