@@ -53,6 +53,9 @@ def test_a_short_seeded_slice_runs_end_to_end_and_fills_every_column():
             assert m.nees_lo_correlated <= m.nees_lo * 1.03
             assert m.nees_hi_correlated >= m.nees_hi * 0.97
             assert 0.0 < m.nees_ideal_in_band <= 0.97
+            # the velocity's NEES on the same samples, against the same band
+            assert math.isfinite(m.vel_nees_mean) and m.vel_nees_mean > 0.0
+            assert (m.vel_nees_lo, m.vel_nees_hi) == (m.nees_lo, m.nees_hi)
             assert 0.0 < m.coverage <= 1.0
     text = robustness_tables(run)
     for heading in (
@@ -63,6 +66,8 @@ def test_a_short_seeded_slice_runs_end_to_end_and_fills_every_column():
         'mean NEES',
         'NEES in its 95 % band',
         'NEES in the band for correlated errors',
+        'mean velocity NEES',
+        'velocity NEES in its 95 % band',
         'an honest estimator as good as the bound',
         'windows unsuccessful / raised',
         'silent failures',

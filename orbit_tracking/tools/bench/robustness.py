@@ -312,10 +312,11 @@ def _accuracy_table(rs: Sequence[DrawResult]) -> list[str]:
 def _health_table(rs: Sequence[DrawResult]) -> list[str]:
     lines = [
         '| method | mean NEES | NEES in its 95 % band | NEES in the band for correlated errors '
+        '| mean velocity NEES | velocity NEES in its 95 % band '
         '| coverage of the span | windows '
         'unsuccessful / raised | silent failures (states: position or velocity; position / '
         'velocity alone) | wall per draw [s] | slowest window [s] |',
-        '|---|---|---|---|---|---|---|---|---|',
+        '|---|---|---|---|---|---|---|---|---|---|---|',
     ]
     for name in METHODS:
         ok = [m for m in _methods(rs, name) if m.ran]
@@ -323,6 +324,8 @@ def _health_table(rs: Sequence[DrawResult]) -> list[str]:
             f'| {name} | {_mpw([m.nees_mean for m in ok])} | '
             f'{_share([m.nees_in_band for m in ok])} | '
             f'{_share([m.nees_in_correlated_band for m in ok])} | '
+            f'{_mpw([m.vel_nees_mean for m in ok])} | '
+            f'{_share([m.vel_nees_in_band for m in ok])} | '
             f'{_mpw([m.coverage for m in ok])} | '
             f'{sum(m.windows_failed for m in ok)} / {sum(m.windows_raised for m in ok)} of '
             f'{sum(m.windows for m in ok)} | {sum(m.silent_states for m in ok)} '
@@ -416,8 +419,9 @@ def _by_telemetry_table(rs: Sequence[DrawResult]) -> list[str]:
         '| telemetry error model | draws | silent failures (states; draws with any) | '
         f'gap pos RMS <= {GAP_TARGET:g} x CRB | outside pos RMS <= {OUTSIDE_TARGET:g} x CRB | '
         'NEES in its 95 % band | '
-        'NEES in the band for correlated errors | windows unsuccessful |',
-        '|---|---|---|---|---|---|---|---|',
+        'NEES in the band for correlated errors | velocity NEES in its 95 % band | '
+        'windows unsuccessful |',
+        '|---|---|---|---|---|---|---|---|---|',
     ]
     for model in sorted(groups):
         ms = groups[model]
@@ -427,6 +431,7 @@ def _by_telemetry_table(rs: Sequence[DrawResult]) -> list[str]:
             f'{sum(m.silent_states > 0 for m in ms)} | {_share(gap)} | {_share(out)} | '
             f'{_share([m.nees_in_band for m in ms])} | '
             f'{_share([m.nees_in_correlated_band for m in ms])} | '
+            f'{_share([m.vel_nees_in_band for m in ms])} | '
             f'{sum(m.windows_failed + m.windows_raised for m in ms)} of '
             f'{sum(m.windows for m in ms)} |'
         )
@@ -515,7 +520,8 @@ def robustness_tables(run: RobustnessRun) -> str:
         'cannot separate lasts the whole span), so beside it the band of the mean NEES of '
         "samples whose errors are correlated as the bound's at the same times, and how "
         'often an honest estimator as good as the bound would be inside the independent '
-        'band (`orbit_tracking/core/metrics.py`, `correlated_nees_band`). Silent '
+        'band (`orbit_tracking/core/metrics.py`, `correlated_nees_band`); the velocity '
+        'NEES of the same samples against the same independent band. Silent '
         f'failures: output states (0.1 s) whose position or whose velocity error is beyond '
         f'{SILENT_SIGMA:g} of its own covariance in any direction (Mahalanobis distance; '
         'every output state: failed windows are withheld). KF+RTS: jerk '

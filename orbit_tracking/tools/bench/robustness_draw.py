@@ -31,7 +31,9 @@ every :data:`NEES_STEP_S` seconds, counted as independent, with the two-sided 95
 chi-square band for that count, and beside it the band for samples whose errors are
 correlated as the bound's at the same times and the chance that an honest estimator as
 good as the bound falls inside the independent band
-(:func:`~orbit_tracking.core.metrics.correlated_nees_band`); windows not successful or
+(:func:`~orbit_tracking.core.metrics.correlated_nees_band`); the same samples' mean
+velocity NEES with its independent band (the position alone did not show a covariance
+term that widened every velocity sigma fourfold); windows not successful or
 raising; *silent failures*: output states (the multiples of the output step) whose
 position or whose velocity is more than :data:`SILENT_SIGMA` of its own published
 covariance off the truth (Mahalanobis distance, so in any direction; counted together and
@@ -44,10 +46,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import signal
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -71,6 +71,7 @@ from orbit_tracking.core.sim.simulator import SimulationResult, World, simulate
 from orbit_tracking.core.sim.stream import feed_simulation
 from orbit_tracking.core.sim.telemetry import error_covariance
 from orbit_tracking.core.triangulation.pipeline import TriangulationPipeline, fix_series
+from orbit_tracking.tools.bench.time_limit import time_limit_of
 from orbit_tracking.tools.estimate import estimator_configs
 
 __all__ = [
@@ -128,6 +129,9 @@ class MethodResult:
     nees_lo_correlated: float = math.nan  # the band allowing for the bound's correlation
     nees_hi_correlated: float = math.nan
     nees_ideal_in_band: float = math.nan  # chance an estimator as good as the bound is inside
+    vel_nees_mean: float = math.nan  # the same samples' velocity NEES, and its band
+    vel_nees_lo: float = math.nan
+    vel_nees_hi: float = math.nan
     coverage: float = 0.0
     windows: int = 0
     windows_failed: int = 0
@@ -147,6 +151,10 @@ class MethodResult:
     @property
     def nees_in_band(self) -> bool:
         return self.nees_lo <= self.nees_mean <= self.nees_hi
+
+    @property
+    def vel_nees_in_band(self) -> bool:
+        return self.vel_nees_lo <= self.vel_nees_mean <= self.vel_nees_hi
 
     @property
     def nees_in_correlated_band(self) -> bool:
@@ -177,34 +185,6 @@ class DrawResult:
 
     def method(self, name: str) -> MethodResult | None:
         return next((m for m in self.methods if m.method == name), None)
-
-
-class MethodTimeout(RuntimeError):
-    """A method ran past its time limit."""
-
-
-@contextmanager
-def _time_limit(seconds: float | None) -> Iterator[None]:
-    """Raise :class:`MethodTimeout` in the main thread after ``seconds`` (no-op elsewhere,
-    or when a C call does not return to Python in time)."""
-    if not seconds:
-        yield
-        return
-
-    def on_alarm(_sig: int, _frame: object) -> None:
-        raise MethodTimeout(f'ran longer than {seconds:g} s')
-
-    try:
-        old = signal.signal(signal.SIGALRM, on_alarm)
-    except ValueError:  # not the main thread
-        yield
-        return
-    signal.setitimer(signal.ITIMER_REAL, seconds)
-    try:
-        yield
-    finally:
-        signal.setitimer(signal.ITIMER_REAL, 0.0)
-        signal.signal(signal.SIGALRM, old)
 
 
 def _fixes(result: SimulationResult) -> Observations:
@@ -320,6 +300,15 @@ def _ratio(rms: float, crb: float) -> float:
     return rms / crb if math.isfinite(crb) and crb > 0.0 and math.isfinite(rms) else math.nan
 
 
+def _d2(e: FloatArray, cov: FloatArray) -> FloatArray:
+    """Squared Mahalanobis distances of the rows of ``e`` (inf for all when a covariance
+    is singular)."""
+    try:
+        return nees(e, cov)
+    except np.linalg.LinAlgError:
+        return np.full(e.shape[0], np.inf)
+
+
 def _score(
     case: _Case,
     name: str,
@@ -351,15 +340,12 @@ def _score(
     # NEES: one sample every NEES_STEP_S seconds
     k = np.round(tt / NEES_STEP_S)
     pick = np.flatnonzero(np.abs(tt - k * NEES_STEP_S) < 1e-6)
-    nees_mean, lo, hi = math.nan, math.nan, math.nan
+    parts = (slice(0, 3), slice(3, 6))  # position, velocity
+    nees_mean, lo, hi = vel_nees = (math.nan,) * 3
     band_c: tuple[float, float, float] = (math.nan,) * 3
     if pick.size:
-        try:
-            values = nees(e[pick, :3], cov[pick, :3, :3])
-        except np.linalg.LinAlgError:
-            values = np.full(pick.size, np.inf)
-        s = nees_summary(values, 3, 0.95)
-        nees_mean, lo, hi = s.mean, s.lo, s.hi
+        ps, vs = (nees_summary(_d2(e[pick, p], cov[pick, p, p]), 3, 0.95) for p in parts)
+        (nees_mean, lo, hi), vel_nees = (ps.mean, ps.lo, ps.hi), (vs.mean, vs.lo, vs.hi)
         # the samples are not independent: how the bound's errors at them are correlated
         sigma, finite = b.joint_position_covariance(tt[pick])
         band_c = correlated_nees_band(whitened_correlation(sigma, 3, finite), 3, 0.95)
@@ -368,13 +354,10 @@ def _score(
     # off by more than SILENT_SIGMA of its own covariance in any direction (Mahalanobis:
     # an error along a thin direction of an elongated covariance counts, which the
     # per-axis sigmas would not see)
-    off = {}
-    for part in (slice(0, 3), slice(3, 6)):
-        try:
-            d2 = nees(e[:, part], cov[:, part, part])
-        except np.linalg.LinAlgError:
-            d2 = np.full(tt.size, np.inf)
-        off[part.start] = ~(d2 <= SILENT_SIGMA**2) & on_grid & claims(tt)
+    off = {
+        p.start: ~(_d2(e[:, p], cov[:, p, p]) <= SILENT_SIGMA**2) & on_grid & claims(tt)
+        for p in parts
+    }
     silent = int(np.sum(off[0]))
     return MethodResult(
         name,
@@ -393,6 +376,9 @@ def _score(
         nees_lo_correlated=band_c[0],
         nees_hi_correlated=band_c[1],
         nees_ideal_in_band=band_c[2],
+        vel_nees_mean=vel_nees[0],
+        vel_nees_lo=vel_nees[1],
+        vel_nees_hi=vel_nees[2],
         coverage=float(tt.size / case.truth_t.size),
         silent=silent,
         silent_velocity=int(np.sum(off[3])),
@@ -423,7 +409,7 @@ def _run_ours(
         spans.append((span[0], span[1], status, why))
 
     start = time.perf_counter()
-    with _time_limit(time_limit):
+    with time_limit_of(time_limit):
         estimates = solve_windows(case.obs_est, est_cfg, win_cfg, progress)
         wall = time.perf_counter() - start
         if not estimates:
@@ -462,7 +448,7 @@ def _run_kalman(
     case: _Case, bounds: Mapping[str, Bound], q: float, time_limit: float | None
 ) -> MethodResult:
     start = time.perf_counter()
-    with _time_limit(time_limit):
+    with time_limit_of(time_limit):
         track = smooth(
             case.obs_kf,
             TARGET,
