@@ -401,6 +401,27 @@ class EstimatorNode(WindowOutputs, StationInputs):
                 min_value=0.0,
                 max_value=1e6,
             ),
+            refine_rounds=declare(
+                self,
+                'refine_rounds',
+                4,
+                'Rounds of knot insertion where the measurements misfit the spline (a score '
+                'test on the residuals), each followed by a new solve; 0 = off.',
+                read_only=True,
+                min_value=0,
+                max_value=20,
+            ),
+            gate_event_rounds=declare(
+                self,
+                'gate_event_rounds',
+                2,
+                'Rounds of events put where the residual gate rejected station values '
+                'clustered in time (a staging no knot follows), each followed by a new solve; '
+                '0 = off.',
+                read_only=True,
+                min_value=0,
+                max_value=10,
+            ),
             edge_gap=declare(
                 self,
                 'edge_gap',
