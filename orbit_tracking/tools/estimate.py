@@ -9,7 +9,6 @@ from collections import Counter
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import yaml
@@ -25,7 +24,6 @@ from orbit_tracking.core.estimation.bias_files import (
     write_biases_csv,
 )
 from orbit_tracking.core.estimation.config import EstimationError, EstimatorConfig
-from orbit_tracking.core.estimation.knots import KnotConfig
 from orbit_tracking.core.estimation.results import BiasEstimate, Estimate
 from orbit_tracking.core.estimation.windows import (
     Span,
@@ -52,6 +50,11 @@ from orbit_tracking.tools.bag_inputs import (
     feed_pipeline,
     read_for_estimation,
 )
+from orbit_tracking.tools.estimator_parameters import (
+    NODE_ONLY_PARAMETERS,
+    estimator_configs,
+    read_parameters_file,
+)
 from orbit_tracking.tools.evaluation import (
     bias_lines,
     bias_summary,
@@ -61,10 +64,12 @@ from orbit_tracking.tools.evaluation import (
 )
 
 __all__ = [
+    'NODE_ONLY_PARAMETERS',
     'EstimationReport',
     'estimate_bag',
     'estimator_configs',
     'median_miss_sigma',
+    'read_parameters_file',
     'resolve_declaration',
     'triangulated_fixes',
     'trajectory_messages',
@@ -269,42 +274,6 @@ def _window_summary(e: Estimate) -> dict[str, object]:
             if sol.isotropic_spans
         },
     }
-
-
-_KNOT_PARAMETERS = (
-    'degree',
-    'base_spacing',
-    'gap_spacing',
-    'delta_position',
-    'delta_velocity',
-    'solver',
-    'sparse',
-)
-
-
-def estimator_configs(
-    parameters: Mapping[str, Any],
-) -> tuple[EstimatorConfig, WindowConfig, str]:
-    """The settings of :func:`estimate_bag` that match an estimator node started with
-    ``parameters`` (its parameter names; missing ones keep the defaults, which are the
-    node's): ``(estimator config, window config, bias_file)``."""
-    p = parameters
-    knots = KnotConfig(**{k: p[k] for k in _KNOT_PARAMETERS if k in p})
-    if 'max_knot_spacing' in p:
-        knots = replace(knots, max_spacing=float(p['max_knot_spacing']))
-    est = EstimatorConfig(
-        knots=knots,
-        **{k: p[k] for k in ('knot_method', 'use_telemetry', 'gate_sigma') if k in p},
-    )
-    names = {'window_length': 'length', 'window_overlap': 'overlap'}
-    win = WindowConfig(
-        **{
-            names.get(k, k): float(p[k])
-            for k in ('window_length', 'window_overlap', 'latency', 'output_step')
-            if k in p
-        }
-    )
-    return est, win, str(p.get('bias_file') or '')
 
 
 def estimate_bag(

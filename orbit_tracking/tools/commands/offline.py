@@ -38,18 +38,33 @@ def _cmd_triangulate(args: argparse.Namespace) -> int:
 def _cmd_estimate(args: argparse.Namespace) -> int:
     bag = input_bag(args.bag)  # checked before the numerical modules load: a quick error
     from orbit_tracking.core.estimation.bias_files import load_bias_declaration
-    from orbit_tracking.core.estimation.config import EstimatorConfig
-    from orbit_tracking.core.estimation.windows import WindowConfig
     from orbit_tracking.tools.estimate import estimate_bag
+    from orbit_tracking.tools.estimator_parameters import (
+        NODE_ONLY_PARAMETERS,
+        estimator_configs,
+        read_parameters_file,
+    )
 
     try:
-        win = WindowConfig(args.window_length, args.overlap, output_step=args.output_step)
+        params = read_parameters_file(args.params_file) if args.params_file else {}
+        given = {
+            'window_length': args.window_length,
+            'window_overlap': args.overlap,
+            'output_step': args.output_step,
+            'knot_method': args.knot_method,
+            'use_telemetry': False if args.no_telemetry else None,
+            'bias_file': args.biases,
+        }
+        params.update({k: v for k, v in given.items() if v is not None})
+        est, win, bias_file = estimator_configs(params)
     except ValueError as exc:
         print(f'orbit-tracking estimate: error: {exc}', file=sys.stderr)
         return 2
-    est = EstimatorConfig(knot_method=args.knot_method, use_telemetry=not args.no_telemetry)
+    unused = sorted(NODE_ONLY_PARAMETERS & set(params) - {'bias_file'})
+    if unused and not args.quiet:
+        print(f'estimate: parameters of the live node only, not used offline: {", ".join(unused)}')
     # read the declaration and the times before anything is deleted: a one-line error
-    biases = load_bias_declaration(args.biases)
+    biases = load_bias_declaration(bias_file)
     times = None
     if args.report_times:
         from orbit_tracking.tools.estimate_dynamics import parse_report_times
@@ -71,7 +86,7 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
             biases,
             times,
             args.model,
-            args.output_step,
+            win.output_step,
             not args.quiet,
             args.j2,
             stages,
@@ -186,12 +201,28 @@ def add_estimate(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
     s.add_argument(
         '--out', required=True, help='output folder (trajectory.csv, bag/, summary.yaml)'
     )
-    s.add_argument('--window-length', type=float, default=60.0, help='window length [s]')
     s.add_argument(
-        '--overlap', type=float, default=20.0, help='overlap of consecutive windows [s]'
+        '--params-file',
+        metavar='YAML',
+        default='',
+        help="the estimator node's ROS 2 parameter file (config/estimator.yaml format): the "
+        'offline run takes the settings a node started with it would; the options below '
+        'override it',
     )
     s.add_argument(
-        '--output-step', type=float, default=0.1, help='spacing of the output states [s]'
+        '--window-length', type=float, default=None, help='window length [s] (default 60)'
+    )
+    s.add_argument(
+        '--overlap',
+        type=float,
+        default=None,
+        help='overlap of consecutive windows [s] (default 20)',
+    )
+    s.add_argument(
+        '--output-step',
+        type=float,
+        default=None,
+        help='spacing of the output states [s] (default 0.1)',
     )
     s.add_argument(
         '--no-telemetry',
@@ -201,7 +232,7 @@ def add_estimate(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
     s.add_argument(
         '--knot-method',
         choices=('sparse', 'dynamics', 'uniform', 'dense', 'polynomial'),
-        default='sparse',
+        default=None,
         help="knot placement: the seed's sparse selection (default) or a baseline",
     )
     s.add_argument(
@@ -236,7 +267,7 @@ def add_estimate(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
     s.add_argument(
         '--biases',
         metavar='FILE|auto',
-        default='',
+        default=None,
         help='estimate station biases: a YAML declaration (config/biases_example.yaml) or '
         '"auto" (every measured field of every station, weak priors); writes biases.csv',
     )
