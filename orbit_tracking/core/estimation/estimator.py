@@ -560,8 +560,14 @@ def _estimate_once(
     if cfg.telemetry_velocity_error == 'auto' and prob.telemetry:
         extra, v_notes = velocity_error_consider(prob, out.beta, raw, obs, cfg, t0, t1)
         cov = cov + extra  # beside the evidence's term
-        for tid, (p_w, ratio) in v_notes.items():
-            if ratio > 1.01:
+        for tid, (p_w, ratio, q) in v_notes.items():
+            if q > 0.0:
+                tel_note += (
+                    f'; telemetry {tid} velocity rounded to steps of {q:.3g} m/s: the '
+                    f'covariance carries the rounding as a slow velocity error: variances up '
+                    f'to x{ratio:.3g}'
+                )
+            elif ratio > 1.01:
                 tel_note += (
                     f'; telemetry {tid} covariance carries a separate velocity error the '
                     f'test could not exclude (posterior {p_w:.2g}): variances up to '
