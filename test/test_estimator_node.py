@@ -231,6 +231,19 @@ def test_offline_estimate_takes_the_nodes_parameter_file(short_bag, tmp_path, ca
     assert "no ros__parameters for node 'estimator'" in capsys.readouterr().err
 
 
+def test_offline_settings_take_the_types_of_the_core():
+    """A YAML ``5`` for a float setting is 5.0; a fraction for a count, or a word for a
+    switch, is an error and not a truncated or truthy default."""
+    from orbit_tracking.tools.estimator_parameters import estimator_configs
+
+    est, win, _ = estimator_configs({'gate_sigma': 5, 'window_length': 50, 'refine_rounds': 2.0})
+    assert isinstance(est.gate_sigma, float) and est.refine_rounds == 2
+    assert win.length == 50.0
+    for bad in ({'refine_rounds': 2.5}, {'use_telemetry': 'yes'}, {'gate_sigma': 'five'}):
+        with pytest.raises(ValueError):
+            estimator_configs(bad)
+
+
 def _another_value(name, value):
     """A valid value of node parameter ``name`` other than its default ``value``."""
     strings = {

@@ -73,6 +73,8 @@ def _typed(name: str, value: Any, default: Any) -> Any:
         if not isinstance(value, bool):
             raise ValueError(f'parameter {name} must be true or false; got {value!r}')
         return value
+    if isinstance(default, int) and isinstance(value, float) and not value.is_integer():
+        raise ValueError(f'parameter {name} must be an integer; got {value!r}')
     if isinstance(default, int | float) and not isinstance(value, bool):
         return type(default)(value)
     return value
