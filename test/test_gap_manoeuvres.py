@@ -305,3 +305,27 @@ def test_a_turn_the_knots_follow_only_roughly_widens_the_velocity_covariance(
     assert sol_off.manoeuvres is None
     assert np.sum(maha_off > 5.0) >= 10
     np.testing.assert_array_equal(x, x_off)
+
+
+def test_the_outage_spans_reach_as_far_as_the_event_detector_is_blind() -> None:
+    """The event detector's fits take max(3, event_window / dt) samples on each side and
+    see no event whose samples reach across a hole: the spans carrying the outage term
+    are widened by that reach (3 s at 1 Hz, 1 s at 5 Hz), not by event_window alone."""
+    from orbit_tracking.core.data.observations import Observations
+    from orbit_tracking.core.data.tables import TargetStates
+    from orbit_tracking.core.estimation.config import EstimatorConfig
+    from orbit_tracking.core.estimation.estimator import _unseen
+
+    def spans(rate: float) -> tuple[tuple[float, float], ...]:
+        t = np.arange(0.0, 60.0 + 1e-9, 1.0 / rate)
+        t = t[(t < 20.0) | (t > 30.0)]
+        n = t.size
+        z = np.zeros((n, 3))
+        tel = TargetStates(0, t, z, z, np.ones(n), np.ones(n))
+        obs = Observations(stations=(), telemetry={0: tel})
+        return _unseen(obs, 0, 0.0, 60.0, EstimatorConfig())
+
+    ((a1, b1),) = spans(1.0)
+    assert a1 == pytest.approx(19.0 - 3.0) and b1 == pytest.approx(31.0 + 3.0)
+    ((a5, b5),) = spans(5.0)
+    assert a5 == pytest.approx(19.8 - 1.0) and b5 == pytest.approx(30.2 + 1.0)
