@@ -107,7 +107,7 @@ def test_a_window_of_aircraft_draw_0_puts_its_knots_at_the_turn_ramps_and_says_s
     from orbit_tracking.core.estimation.windows import solve_windows
     from orbit_tracking.core.sim.families import jerk_jumps
     from orbit_tracking.tools.bench.robustness_draw import TARGET, _case
-    from orbit_tracking.tools.estimate import estimator_configs
+    from orbit_tracking.tools.estimator_parameters import estimator_configs
 
     case = _case('aircraft', 0)
     est, win, _ = estimator_configs({})

@@ -202,7 +202,7 @@ def _aircraft_window(seed: int, t0: float, t1: float, a: float, b: float, **chan
 
     from orbit_tracking.core.estimation.windows import solve_windows
     from orbit_tracking.tools.bench.robustness_draw import TARGET, _case
-    from orbit_tracking.tools.estimate import estimator_configs
+    from orbit_tracking.tools.estimator_parameters import estimator_configs
 
     case = _case('aircraft', seed)
     est, win, _ = estimator_configs({})

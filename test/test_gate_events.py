@@ -20,7 +20,7 @@ from orbit_tracking.core.estimation.bspline import SplineAxis
 from orbit_tracking.core.estimation.estimator import estimate
 from orbit_tracking.core.metrics import nees
 from orbit_tracking.tools.bench.robustness_draw import _case
-from orbit_tracking.tools.estimate import estimator_configs
+from orbit_tracking.tools.estimator_parameters import estimator_configs
 
 STAGING = 23.15  # the draw's first acceleration jump [s] (families.acceleration_jumps)
 

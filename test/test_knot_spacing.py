@@ -19,7 +19,7 @@ import pytest
 
 from orbit_tracking.core.estimation.windows import solve_windows
 from orbit_tracking.tools.bench.robustness_draw import TARGET, _case
-from orbit_tracking.tools.estimate import estimator_configs
+from orbit_tracking.tools.estimator_parameters import estimator_configs
 
 
 @cache

@@ -64,7 +64,8 @@ def test_data_that_exclude_a_velocity_error_leave_the_moment_small() -> None:
 
 @cache
 def _window(model: str, seed: int, t0: float, t1: float) -> tuple:
-    from orbit_tracking.tools.bench.robustness_draw import _case, estimator_configs
+    from orbit_tracking.tools.bench.robustness_draw import _case
+    from orbit_tracking.tools.estimator_parameters import estimator_configs
 
     case = _case('aircraft', seed)
     cfg = estimator_configs({})[0]

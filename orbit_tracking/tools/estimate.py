@@ -50,11 +50,6 @@ from orbit_tracking.tools.bag_inputs import (
     feed_pipeline,
     read_for_estimation,
 )
-from orbit_tracking.tools.estimator_parameters import (
-    NODE_ONLY_PARAMETERS,
-    estimator_configs,
-    read_parameters_file,
-)
 from orbit_tracking.tools.evaluation import (
     bias_lines,
     bias_summary,
@@ -64,12 +59,9 @@ from orbit_tracking.tools.evaluation import (
 )
 
 __all__ = [
-    'NODE_ONLY_PARAMETERS',
     'EstimationReport',
     'estimate_bag',
-    'estimator_configs',
     'median_miss_sigma',
-    'read_parameters_file',
     'resolve_declaration',
     'triangulated_fixes',
     'trajectory_messages',

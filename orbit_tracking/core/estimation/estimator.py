@@ -58,6 +58,7 @@ from orbit_tracking.core.estimation.coverage import (
     merge_segments,
     unsampled_spans,
 )
+from orbit_tracking.core.estimation.events import detector_reach
 from orbit_tracking.core.estimation.gap_manoeuvres import (
     GapManoeuvres,
     event_spans,
@@ -160,18 +161,18 @@ def _unseen(
     """Where target ``tid``'s telemetry, the rough trajectory whose events make knots, has
     holes longer than two base knot spacings and three sampling intervals
     (:func:`~orbit_tracking.core.estimation.coverage.unsampled_spans`), widened by the
-    event detector's reach: its fits take ``max(3, event_window / dt)`` samples on each
-    side and see no event whose samples reach across a hole, three seconds at 1 Hz (the
-    states just after an outage were off by 0.15 m/s at 0.02 m/s sigmas, robustness
-    aircraft draw 9, 1-2 s after its outage's end, when the spans were widened by
-    ``event_window`` alone)."""
+    event detector's reach (:func:`~orbit_tracking.core.estimation.events.detector_reach`):
+    its fits take ``max(3, event_window / dt)`` samples on each side and see no event whose
+    samples reach across a hole, three seconds at 1 Hz (the states just after an outage
+    were off by 0.15 m/s at 0.02 m/s sigmas, robustness aircraft draw 9, 1-2 s after its
+    outage's end, when the spans were widened by ``event_window`` alone)."""
     tel = obs.telemetry.get(tid) if cfg.use_telemetry else None
     if tel is None or len(tel) < 4:
         return ()
     t = np.sort(np.asarray(tel.time, dtype=np.float64))
     dt = float(np.median(np.diff(t)))
     hole = max(2.0 * cfg.knots.base_spacing, 3.0 * dt)
-    reach = max(3, int(round(cfg.knots.event_window / dt))) * dt if dt > 0.0 else 0.0
+    reach = detector_reach(dt, cfg.knots.event_window)
     return tuple(unsampled_spans(t, t0, t1, hole, max(cfg.knots.event_window, reach)))
 
 

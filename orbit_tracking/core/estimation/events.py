@@ -48,7 +48,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ['Changes', 'find_changes']
+__all__ = ['Changes', 'detector_reach', 'find_changes']
 
 FloatArray = NDArray[np.float64]
 
@@ -91,6 +91,18 @@ class Changes:
         return sorted(self.jumps + self.kinks)
 
 
+def _half_width(dt: float, window: float) -> int:
+    """Samples on each side of a candidate that the detector's fits take."""
+    return max(3, int(round(window / dt)))
+
+
+def detector_reach(dt: float, window: float) -> float:
+    """How far [s] the detector's fits reach on each side of a change, for samples every
+    ``dt`` seconds and the fit window ``window``: a change whose fits would take samples
+    across a hole is never found (``0`` when ``dt`` is not positive)."""
+    return _half_width(dt, window) * dt if dt > 0.0 else 0.0
+
+
 def find_changes(
     t: FloatArray,
     v: FloatArray,
@@ -105,7 +117,7 @@ def find_changes(
     if n < 10:
         return Changes()
     dt = float(np.median(np.diff(t)))
-    k = max(3, int(round(window / dt)))
+    k = _half_width(dt, window)
     if n < 2 * k + 1:
         return Changes()
     jumps: list[float] = []

@@ -11,9 +11,9 @@ Methods, all on the same simulated measurements:
 * ``ours``: the offline pipeline exactly as ``orbit-tracking estimate`` runs it
   (:func:`~orbit_tracking.core.estimation.windows.solve_windows` and
   :func:`~orbit_tracking.core.estimation.windows.stitch` with the estimator node's default
-  settings, :func:`~orbit_tracking.tools.estimate.estimator_configs`), telemetry fused; the
-  rough trajectory is the telemetry, or, without telemetry, fixes triangulated from the
-  draw's lines of sight, as ``estimate`` does on a bag without either;
+  settings, :func:`~orbit_tracking.tools.estimator_parameters.estimator_configs`),
+  telemetry fused; the rough trajectory is the telemetry, or, without telemetry, fixes
+  triangulated from the draw's lines of sight, as ``estimate`` does on a bag without either;
 * ``ours, stations only``: the same with ``use_telemetry=False`` (telemetry only places the
   knots);
 * ``KF+RTS``: :func:`~orbit_tracking.core.baselines.kalman.smooth` on the station
@@ -72,7 +72,7 @@ from orbit_tracking.core.sim.stream import feed_simulation
 from orbit_tracking.core.sim.telemetry import error_covariance
 from orbit_tracking.core.triangulation.pipeline import TriangulationPipeline, fix_series
 from orbit_tracking.tools.bench.time_limit import time_limit_of
-from orbit_tracking.tools.estimate import estimator_configs
+from orbit_tracking.tools.estimator_parameters import estimator_configs
 
 __all__ = [
     'BOUND_OF',

@@ -116,7 +116,8 @@ def _offline_check(
     offline with the estimator node's settings, and compare with the live trajectory: the
     same windows over the same data give the same states, unless data were lost or
     reordered on the way."""
-    from orbit_tracking.tools.estimate import estimate_bag, estimator_configs
+    from orbit_tracking.tools.estimate import estimate_bag
+    from orbit_tracking.tools.estimator_parameters import estimator_configs
     from orbit_tracking.tools.simulate import simulate_to_bag
 
     est_cfg, win_cfg, biases = estimator_configs(est_params)
