@@ -23,6 +23,7 @@ from orbit_tracking.core.estimation.telemetry_block import (
 from orbit_tracking.core.estimation.telemetry_evidence import (
     CARRY_FLOOR,
     CARRY_WEIGHT,
+    PARSIMONY_NATS,
     _prior_at,
     carried_evidence,
     choose_sizes,
@@ -129,7 +130,7 @@ def test_the_table_by_woodbury_equals_the_evidence_pair_by_pair():
     assert np.allclose(table, want, rtol=1e-9, atol=1e-6)
 
 
-def test_white_data_choose_the_floor_and_a_slow_error_its_own_size():
+def test_white_data_choose_the_floor_and_a_slow_error_its_own_size(monkeypatch):
     tb = _block(False, False)
     tb.declared_sigma = 1.0
     n = tb.axis.n_coef
@@ -142,11 +143,59 @@ def test_white_data_choose_the_floor_and_a_slow_error_its_own_size():
     sizes, ev = evidence_grid(tb, h, g, np.zeros(3 * n))
     level, step = choose_sizes(sizes, ev)
     assert 0.5 < level < 10.0 and 0.1 < step < 2.0, (level, step)
+    # smaller sizes than the best, nearly as likely: not searched further
+    assert choose_sizes(sizes, ev, refine=(tb, h, g, np.zeros(3 * n))) == (level, step)
     # the finer search around the best point finds one at least as good, near it
+    import orbit_tracking.core.estimation.telemetry_evidence as te
+
+    monkeypatch.setattr(te, 'PARSIMONY_NATS', 0.0)
+    level, step = choose_sizes(sizes, ev)
     fine = choose_sizes(sizes, ev, refine=(tb, h, g, np.zeros(3 * n)))
     assert error_evidence(h, g, np.zeros(3 * n), error_precision(n, *fine)) >= ev.max()
     assert np.all(np.abs(np.log(np.array(fine) / (level, step))) <= np.log(10.0) / 4 + 1e-9)
     assert choose_sizes(sizes, np.full_like(ev, -np.inf)) is None
+
+
+def test_sizes_the_data_cannot_tell_apart_are_the_smallest():
+    """Within PARSIMONY_NATS of the best the smallest sizes are chosen (least level x
+    step; of equal products the more likely); beyond it the best pair is."""
+    sizes = np.geomspace(1e-3, 10.0, 17)
+    ev = np.zeros((17, 17))
+    ev[10, 3] = PARSIMONY_NATS - 0.5  # a maximum the noise of a few numbers could make
+    assert choose_sizes(sizes, ev) == (sizes[0], sizes[0])
+    ev[0, 0] = -np.inf  # of the next smallest product, the pair of larger evidence
+    ev[1, 0], ev[0, 1] = 0.2, 0.1
+    assert choose_sizes(sizes, ev) == (sizes[1], sizes[0])
+    ev = np.full((17, 17), -PARSIMONY_NATS - 0.5)
+    ev[10, 3] = 0.0  # decisive
+    assert choose_sizes(sizes, ev) == (sizes[10], sizes[3])
+    ev[4, 2] = -PARSIMONY_NATS + 0.1  # smaller and nearly as likely
+    assert choose_sizes(sizes, ev) == (sizes[4], sizes[2])
+
+
+@pytest.mark.timeout(120)
+def test_white_gps_the_stations_cannot_check_keeps_its_positions():
+    """Robustness aircraft draw 1020 (white GPS at 5 Hz, one ship's radar and theodolite),
+    its first 28 s: the evidence of the error's level is flat, and its maximum (0.67 of
+    the declared sigma) left the telemetry's positions to the radar: 0.95 m RMS. The
+    smallest sizes the evidence allows keep them: the floor, about 0.2 m RMS; the
+    covariance still carries the level the evidence allowed."""
+    from orbit_tracking.core.estimation.estimator import estimate
+    from orbit_tracking.tools.bench.robustness_draw import _case
+    from orbit_tracking.tools.estimator_parameters import estimator_configs
+
+    case = _case('aircraft', 1020)
+    est = estimate(case.obs_est, 0.0, 28.0, estimator_configs({})[0])
+    assert est.success, est.message
+    sol = est.targets[0]
+    declared = float(np.median(case.obs_est.telemetry[0].position_sigma))
+    assert sol.telemetry_error_sigma[0] <= 0.01 * declared, sol.telemetry_error_sigma
+    idx = np.flatnonzero((case.truth_t > 1.0) & (case.truth_t < 27.0))[::10]
+    x, c = sol.states(case.truth_t[idx])
+    d = x[:, :3] - case.truth_x[idx, :3]
+    assert np.sqrt(np.mean(np.sum(d**2, axis=1))) < 0.4
+    maha = np.sqrt(np.einsum('ki,kij,kj->k', d, np.linalg.inv(c[:, :3, :3]), d))
+    assert maha.max() < 3.0
 
 
 def _posterior(tb, h, g, extra):
