@@ -248,10 +248,11 @@ def choose_sizes(
     finer around it (within one step of the coarse grid and :data:`ERROR_SIGMA_RANGE`)."""
     if not np.isfinite(ev).any():
         return None
-    i, j = np.unravel_index(int(np.argmax(np.where(np.isfinite(ev), ev, -np.inf))), ev.shape)
-    k, m = _simplest(sizes, ev, float(ev[i, j]))
-    if (k, m) != (i, j):  # the data do not ask for the sizes of largest evidence
-        return float(sizes[k]), float(sizes[m])
+    flat = int(np.argmax(np.where(np.isfinite(ev), ev, -np.inf)))
+    i, j = (int(x) for x in np.unravel_index(flat, ev.shape))
+    small = _simplest(sizes, ev, float(ev[i, j]))
+    if small != (i, j):  # the data do not ask for the sizes of largest evidence
+        return float(sizes[small[0]]), float(sizes[small[1]])
     best = (float(sizes[i]), float(sizes[j]))
     if refine is None:
         return best
