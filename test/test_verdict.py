@@ -116,6 +116,19 @@ def test_a_window_whose_model_does_not_fit_the_data_fails_after_its_retries():
     assert clean.success and clean.attempts == 1, clean.message
 
 
+def test_a_window_without_telemetry_is_not_retried_twice_alike():
+    """The last retry leaves the telemetry out: a window that has none would solve the
+    same problem again."""
+    from orbit_tracking.core.estimation.estimator import safer_settings
+
+    cfg = EstimatorConfig()
+    labels = [label for label, _, _ in safer_settings(cfg, None)]
+    assert len(labels) == 2 and 'telemetry not fused' in labels[1]
+    alone = safer_settings(cfg, None, telemetry=False)
+    assert [label for label, _, _ in alone] == labels[:1]
+    assert alone[0][1].use_telemetry  # the fixes are the rough trajectory
+
+
 def test_a_station_noisier_than_declared_is_used_with_its_measured_noise():
     """One theodolite whose noise is 3x its declared sigma (white): its sigmas are used 3x
     larger (the factor is reported), the window is a success, and its covariance is

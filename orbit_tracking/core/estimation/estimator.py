@@ -782,7 +782,8 @@ def _estimate_retried(
     if first.success or not cfg.retry:
         return first
     tried = [('the settings', first)]
-    for label, cfg2, prev2 in safer_settings(cfg, previous):
+    telemetry = any(np.any((v.time >= t0) & (v.time <= t1)) for v in obs.telemetry.values())
+    for label, cfg2, prev2 in safer_settings(cfg, previous, telemetry):
         try:
             e = _attempt(obs, t0, t1, cfg2, target_ids, prev2, frame)
         except OrbitTrackingError as exc:
@@ -825,13 +826,18 @@ def _attempt(
 
 
 def safer_settings(
-    cfg: EstimatorConfig, previous: Mapping[int, TargetSolution] | None
+    cfg: EstimatorConfig,
+    previous: Mapping[int, TargetSolution] | None,
+    telemetry: bool = True,
 ) -> list[tuple[str, EstimatorConfig, Mapping[int, TargetSolution] | None]]:
     """The retries of a window that was not a success, safest last: a start from the rough
     trajectory alone with fewer knots (events and a knot every ``baseline_spacing`` s; the
     measurement-driven knot test then adds those the residuals ask for, a manoeuvre that 3 s
     knots cannot follow), then the same without telemetry fused (telemetry whose errors its model
-    does not describe pulls the fit away from the stations)."""
+    does not describe pulls the fit away from the stations); that one only when the window
+    has ``telemetry``: without, it is the same solve again (a failed window without
+    telemetry, robustness ascent draw 1022 of the scratch seeds, spent a third of its 29 s
+    on it)."""
     del previous  # the retries start from the rough trajectory, not the previous window
     fewer = replace(cfg, knot_method='dynamics')
     out: list[tuple[str, EstimatorConfig, Mapping[int, TargetSolution] | None]] = [
@@ -841,7 +847,7 @@ def safer_settings(
             None,
         )
     ]
-    if cfg.use_telemetry:
+    if cfg.use_telemetry and telemetry:
         out.append(('fewer knots, telemetry not fused', replace(fewer, use_telemetry=False), None))
     return out
 
