@@ -275,11 +275,11 @@ REFINE_POINTS = 4
 PARSIMONY_NATS = 1.0
 """How much less log evidence than the grid's best the smallest sizes may have and still
 be chosen (:func:`choose_sizes`). Where the telemetry has no slow error, a level's log
-evidence at its maximum exceeds that at zero by ``1.5 (z - 1 - log z)`` (z > 1; else 0), ``z`` a
-chi-square of three degrees of freedom over three (one offset per axis): below one nat
-in 95 % of windows. A slow error the data see is tens of nats ahead. (Two nats, also
-tried on the scratch families, chose the floor more often on correlated telemetry too:
-more states beyond five sigma on the aircraft draws.)"""
+evidence at its maximum exceeds that at zero by ``1.5 (z - 1 - log z)`` (for z > 1,
+else 0), ``z`` a chi-square of three degrees of freedom over three (one offset per
+axis): below one nat in 95 % of windows. A slow error the data see clearly is many nats
+ahead. (Two nats, also tried on the scratch families, chose the floor more often on
+correlated telemetry too: more states beyond five sigma on the aircraft draws.)"""
 
 
 def _simplest(sizes: FloatArray, ev: FloatArray, best: float) -> tuple[int, int]:
