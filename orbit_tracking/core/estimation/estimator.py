@@ -1,7 +1,9 @@
 """Trajectory estimation on a window of raw measurements (seed 000).
 
-(Slightly over the ~600-line guide: the steps of one window solve, from the knots to the
-verdict, read best in one place; its parts live in the modules it imports.)
+(About 900 lines, half again the ~600-line guide: the steps of one window solve, from the
+knots to the verdict, read best in one place; its parts live in the modules it imports.
+The retries and the verdict path, ``estimate`` to ``safer_settings``, are the part that
+could move out.)
 
 The unknowns are the spline coefficients of every target's trajectory
 (:mod:`~orbit_tracking.core.estimation.bspline`, knots from
