@@ -288,7 +288,7 @@ def _simplest(sizes: FloatArray, ev: FloatArray, best: float) -> tuple[int, int]
     ok = np.isfinite(ev) & (ev >= best - PARSIMONY_NATS)
     log_size = np.log(sizes)
     volume = np.where(ok, log_size[:, None] + log_size[None, :], np.inf)
-    least = ok & (volume <= volume.min() + 1e-9)
+    least = volume <= volume.min() + 1e-9  # inf (never least) where not ok
     k, m = np.unravel_index(int(np.argmax(np.where(least, ev, -np.inf))), ev.shape)
     return int(k), int(m)
 
