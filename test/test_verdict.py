@@ -119,7 +119,7 @@ def test_a_window_whose_model_does_not_fit_the_data_fails_after_its_retries():
 def test_a_window_without_telemetry_is_not_retried_twice_alike():
     """The last retry leaves the telemetry out: a window that has none would solve the
     same problem again."""
-    from orbit_tracking.core.estimation.estimator import safer_settings
+    from orbit_tracking.core.estimation.retries import safer_settings
 
     cfg = EstimatorConfig()
     labels = [label for label, _, _ in safer_settings(cfg, None)]

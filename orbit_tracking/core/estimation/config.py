@@ -144,8 +144,8 @@ class EstimatorConfig:
         degrees of freedom ``1 + 5 sqrt(2 / dof)`` if larger; see
         :mod:`~orbit_tracking.core.estimation.verdict`).
     retry : bool
-        Solve a window that is not a success again with safer settings
-        (:func:`~orbit_tracking.core.estimation.estimator.safer_settings`).
+        Solve a window that is not a success again: cut short of an incomplete segment at
+        its edge, then with safer settings (:mod:`~orbit_tracking.core.estimation.retries`).
     estimate_station_noise : bool
         Use a station field's sigmas scaled up to the RMS of its residuals when these show
         white noise significantly larger than declared (never below the declared sigma;

@@ -1,9 +1,8 @@
 """Trajectory estimation on a window of raw measurements (seed 000).
 
-(About 900 lines, half again the ~600-line guide: the steps of one window solve, from the
-knots to the verdict, read best in one place; its parts live in the modules it imports.
-The retries and the verdict path, ``estimate`` to ``safer_settings``, are the part that
-could move out.)
+(About 840 lines, over the ~600-line guide: the steps of one window solve, from the
+knots to the verdict, read best in one place; its parts live in the modules it imports,
+the retries of a failed window in :mod:`~orbit_tracking.core.estimation.retries`.)
 
 The unknowns are the spline coefficients of every target's trajectory
 (:mod:`~orbit_tracking.core.estimation.bspline`, knots from
@@ -52,7 +51,6 @@ import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from orbit_tracking.core.data.observations import Observations
-from orbit_tracking.core.errors import OrbitTrackingError
 from orbit_tracking.core.estimation.bspline import SplineAxis
 from orbit_tracking.core.estimation.config import EstimationError, EstimatorConfig, Segment
 from orbit_tracking.core.estimation.coverage import (
@@ -90,6 +88,7 @@ from orbit_tracking.core.estimation.observability import (
 )
 from orbit_tracking.core.estimation.problem import Problem
 from orbit_tracking.core.estimation.results import Estimate, TargetSolution, state_covariance
+from orbit_tracking.core.estimation.retries import EdgeNotSettled, cut_span, solve_with_retries
 from orbit_tracking.core.estimation.telemetry_block import TelemetryBlock
 from orbit_tracking.core.estimation.telemetry_delays import delay_test, solve_with_aligned_events
 from orbit_tracking.core.estimation.telemetry_evidence import (
@@ -104,7 +103,7 @@ from orbit_tracking.core.estimation.telemetry_velocity import (
 from orbit_tracking.core.estimation.verdict import judge
 from orbit_tracking.core.models.measurements import residual
 
-__all__ = ['REFINE_MAX_CHI2', 'estimate', 'safer_settings']
+__all__ = ['REFINE_MAX_CHI2', 'estimate']
 
 FloatArray = NDArray[np.float64]
 
@@ -195,8 +194,14 @@ def _estimate_once(
     target_ids: Sequence[int] | None = None,
     previous: Mapping[int, TargetSolution] | None = None,
     frame: tuple[FloatArray, FloatArray] | None = None,
+    quick: bool = False,
 ) -> Estimate:
     """Estimate the trajectories of ``target_ids`` over [t0, t1] from ``obs``.
+
+    With ``quick`` a first solve that does not settle, with an incomplete segment at a
+    window edge that data beyond the edge let another window cover, raises
+    :class:`~orbit_tracking.core.estimation.retries.EdgeNotSettled` naming the span to
+    solve instead (:func:`_give_up_early`).
 
     Parameters
     ----------
@@ -327,6 +332,8 @@ def _estimate_once(
         # trajectory through a flat valley of the cost
         prob.gated.clear()
         out, r, jac, cov, cond, singular = solve_on(prob, start)
+    if quick:
+        _give_up_early(out, obs, everything, segments, cfg, t0, t1)
     noisy = [t for t, s in selections.items() if s.rough_source == 'fixes']
     if noisy and cfg.knot_method == 'sparse':
         # fixes are a poor rough trajectory (no velocity, metres of noise): select the
@@ -708,9 +715,11 @@ def estimate(
     """Estimate the trajectories of ``target_ids`` over [t0, t1] from ``obs``.
 
     A window that is not a success (:mod:`~orbit_tracking.core.estimation.verdict`) is
-    solved again with safer settings (:func:`safer_settings`), in turn, until one is a
+    solved again (:mod:`~orbit_tracking.core.estimation.retries`: cut short of an
+    incomplete segment at its edge, then with safer settings), in turn, until one is a
     success; when none is, the attempt with the smallest chi-square per degree of freedom
-    is returned as failed, its message naming every attempt.
+    is returned as failed, its message naming every attempt. A cut window's estimate spans
+    the cut span (its ``t0``, ``t1``).
 
     Parameters
     ----------
@@ -739,10 +748,60 @@ def estimate(
     cfg = cfg or EstimatorConfig()
     fitted = obs if cfg.use_telemetry else obs.without_telemetry()
     t0, t1, edge_note = _measured_edges(fitted, t0, t1, cfg.edge_gap)
-    first = _estimate_retried(obs, t0, t1, cfg, target_ids, previous, frame)
+    telemetry = any(np.any((v.time >= t0) & (v.time <= t1)) for v in obs.telemetry.values())
+
+    def attempt(
+        a: float,
+        b: float,
+        c: EstimatorConfig,
+        prev: Mapping[int, TargetSolution] | None,
+        quick: bool,
+    ) -> Estimate:
+        return _attempt(obs, a, b, c, target_ids, prev, frame, quick)
+
+    first = solve_with_retries(attempt, t0, t1, cfg, previous, telemetry)
     if edge_note:
         first = replace(first, message=f'{first.message}; {edge_note}')
     return first
+
+
+COVERED_S = 1.0
+"""Data more than this [s] beyond a window edge mean another window covers what lies
+beyond it (:func:`_give_up_early`)."""
+
+
+def _give_up_early(
+    out: GnOutcome,
+    obs: Observations,
+    everything: Observations,
+    segments: Mapping[int, tuple[Segment, ...]],
+    cfg: EstimatorConfig,
+    t0: float,
+    t1: float,
+) -> None:
+    """Raise :class:`~orbit_tracking.core.estimation.retries.EdgeNotSettled` when the first
+    solve did not settle (not converged, and beyond ``max_unconverged_decrement``) and an
+    incomplete segment without telemetry lies at a window edge with data beyond it: the
+    solve would crawl along the segment's unanchored valley for many rounds (robustness
+    ascent draw 1022 of the scratch seeds: 23 s, then failed), while the window next to it
+    covers the segment with data on both sides. A segment with telemetry in it is anchored
+    by it (draw 1028: such a window, cut, lost the leverage of its last 18 s on the
+    telemetry's error and its error outside the segment grew from 0.79 to 1.22 times the
+    bound). The span to solve instead is
+    :func:`~orbit_tracking.core.estimation.retries.cut_span`'s."""
+    if out.converged or not out.decrement > cfg.max_unconverged_decrement:
+        return
+    a, b = everything.measured_span()
+    tel = [v.time for tid, v in obs.telemetry.items() if tid in segments and cfg.use_telemetry]
+    segs = [
+        (x, y)
+        for s in segments.values()
+        for x, y in s
+        if not any(np.any((t >= x) & (t <= y)) for t in tel)
+    ]
+    span = cut_span(t0, t1, segs, start=a < t0 - COVERED_S, end=b > t1 + COVERED_S)
+    if span is not None:
+        raise EdgeNotSettled(span, out.decrement)
 
 
 def _measured_edges(
@@ -770,46 +829,6 @@ def _measured_edges(
     return lo, hi, note
 
 
-def _estimate_retried(
-    obs: Observations,
-    t0: float,
-    t1: float,
-    cfg: EstimatorConfig,
-    target_ids: Sequence[int] | None,
-    previous: Mapping[int, TargetSolution] | None,
-    frame: tuple[FloatArray, FloatArray] | None,
-) -> Estimate:
-    """The first attempt, then the safer settings until one is a success (:func:`estimate`)."""
-    first = _attempt(obs, t0, t1, cfg, target_ids, previous, frame)
-    if first.success or not cfg.retry:
-        return first
-    tried = [('the settings', first)]
-    telemetry = any(np.any((v.time >= t0) & (v.time <= t1)) for v in obs.telemetry.values())
-    for label, cfg2, prev2 in safer_settings(cfg, previous, telemetry):
-        try:
-            e = _attempt(obs, t0, t1, cfg2, target_ids, prev2, frame)
-        except OrbitTrackingError as exc:
-            tried.append((label, replace(first, message=f'{label}: {exc}', chi2_dof=math.inf)))
-            continue
-        tried.append((label, e))
-        if e.success:
-            return replace(
-                e,
-                message=f'{e.message}; solved with {label} after: {first.message}',
-                iterations=sum(t.iterations for _, t in tried),
-                attempts=len(tried),
-            )
-    best = min(tried, key=lambda t: t[1].chi2_dof if math.isfinite(t[1].chi2_dof) else math.inf)
-    text = ' | '.join(f'{label}: {e.message}' for label, e in tried)
-    return replace(
-        best[1],
-        success=False,
-        message=f'FAILED with every setting tried ({text})',
-        iterations=sum(t.iterations for _, t in tried),
-        attempts=len(tried),
-    )
-
-
 def _attempt(
     obs: Observations,
     t0: float,
@@ -818,40 +837,14 @@ def _attempt(
     target_ids: Sequence[int] | None,
     previous: Mapping[int, TargetSolution] | None,
     frame: tuple[FloatArray, FloatArray] | None,
+    quick: bool = False,
 ) -> Estimate:
     """One solve; a numerical breakdown (LAPACK not converging on a matrix that overflowed)
     is an :class:`EstimationError` of that window, never an exception that stops a pass."""
     try:
-        return _estimate_once(obs, t0, t1, cfg, target_ids, previous, frame)
+        return _estimate_once(obs, t0, t1, cfg, target_ids, previous, frame, quick)
     except (np.linalg.LinAlgError, FloatingPointError) as exc:
         raise EstimationError(f'numerical failure: {type(exc).__name__}: {exc}') from exc
-
-
-def safer_settings(
-    cfg: EstimatorConfig,
-    previous: Mapping[int, TargetSolution] | None,
-    telemetry: bool = True,
-) -> list[tuple[str, EstimatorConfig, Mapping[int, TargetSolution] | None]]:
-    """The retries of a window that was not a success, safest last: a start from the rough
-    trajectory alone with fewer knots (events and a knot every ``baseline_spacing`` s; the
-    measurement-driven knot test then adds those the residuals ask for, a manoeuvre that 3 s
-    knots cannot follow), then the same without telemetry fused (telemetry whose errors its model
-    does not describe pulls the fit away from the stations); that one only when the window
-    has ``telemetry``: without, it is the same solve again (a failed window without
-    telemetry, robustness ascent draw 1022 of the scratch seeds, spent a third of its 29 s
-    on it)."""
-    del previous  # the retries start from the rough trajectory, not the previous window
-    fewer = replace(cfg, knot_method='dynamics')
-    out: list[tuple[str, EstimatorConfig, Mapping[int, TargetSolution] | None]] = [
-        (
-            f'fewer knots (every {cfg.baseline_spacing:g} s and events, then the knot test)',
-            fewer,
-            None,
-        )
-    ]
-    if cfg.use_telemetry and telemetry:
-        out.append(('fewer knots, telemetry not fused', replace(fewer, use_telemetry=False), None))
-    return out
 
 
 def _seed_from_previous(

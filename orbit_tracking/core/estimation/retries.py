@@ -1,0 +1,191 @@
+"""What a window that is not a success is solved again with (issue 14).
+
+**An incomplete segment at a window edge.** A window whose end (or start) lies inside an
+incomplete segment has nothing beyond that edge to anchor the segment's part of the
+trajectory: two CW radars place it on a circle, one theodolite on a line, and the solve
+crawls along that valley without settling (robustness ascent draw 1022 of the scratch
+seeds: 23 s of iterations, then a failed window and its 40 s of good data lost). A segment
+shorter than the windows' overlap is covered by the window next to it with data on both
+sides, so this window is cut at the segment's boundary (:func:`cut_span`; not later: where
+the unsettled solution's covariance still looked linear was no guide, draw 1011's window
+cut 5 s into its segment crawled as the whole one had). A longer segment reaching past the
+edges of both windows is held by neither with data on both sides, and is left out. The
+cut is made in two ways:
+
+* when the segment holds no telemetry (telemetry anchors it) and there are data beyond
+  that edge (a neighbouring window exists), the first attempt gives up as soon as its
+  first solve has not settled (:class:`EdgeNotSettled`) and the cut span becomes the
+  window, for the solve and every retry below;
+* a window that failed otherwise is solved cut as its first retry (:func:`edge_cut`): a
+  cut window publishes what its data hold, a failed one nothing.
+
+A cut window's estimate spans the cut span; a sliver between it and the next window's start
+is left out of the trajectory rather than published from a solve that did not settle.
+
+**Safer settings** (:func:`safer_settings`) follow: fewer knots, then without telemetry
+fused. When none is a success, the attempt with the smallest chi-square per degree of
+freedom is returned as failed, its message naming every attempt.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import replace
+
+from orbit_tracking.core.errors import OrbitTrackingError
+from orbit_tracking.core.estimation.config import EstimationError, EstimatorConfig, Segment
+from orbit_tracking.core.estimation.results import Estimate, TargetSolution
+
+__all__ = [
+    'MIN_CUT_S',
+    'Attempt',
+    'EdgeNotSettled',
+    'cut_span',
+    'edge_cut',
+    'safer_settings',
+    'solve_with_retries',
+]
+
+MIN_CUT_S = 5.0
+"""A window cut short of an incomplete segment keeps at least this span [s]; a shorter
+one is not tried (too little data for a spline solve with its own knots)."""
+
+EDGE_TOLERANCE_S = 1e-6
+"""A segment within this of a window edge touches it."""
+
+Attempt = Callable[
+    [float, float, EstimatorConfig, Mapping[int, TargetSolution] | None, bool], Estimate
+]
+"""One solve of the window ``[t0, t1]`` with ``cfg`` from ``previous``; with ``quick`` it
+may raise :class:`EdgeNotSettled` instead of solving a window it cannot settle to the end."""
+
+
+def safer_settings(
+    cfg: EstimatorConfig,
+    previous: Mapping[int, TargetSolution] | None,
+    telemetry: bool = True,
+) -> list[tuple[str, EstimatorConfig, Mapping[int, TargetSolution] | None]]:
+    """The retries of a window that was not a success, safest last: a start from the rough
+    trajectory alone with fewer knots (events and a knot every ``baseline_spacing`` s; the
+    measurement-driven knot test then adds those the residuals ask for, a manoeuvre that 3 s
+    knots cannot follow), then the same without telemetry fused (telemetry whose errors its model
+    does not describe pulls the fit away from the stations); that one only when the window
+    has ``telemetry``: without, it is the same solve again (a failed window without
+    telemetry, robustness ascent draw 1022 of the scratch seeds, spent a third of its 29 s
+    on it)."""
+    del previous  # the retries start from the rough trajectory, not the previous window
+    fewer = replace(cfg, knot_method='dynamics')
+    out: list[tuple[str, EstimatorConfig, Mapping[int, TargetSolution] | None]] = [
+        (
+            f'fewer knots (every {cfg.baseline_spacing:g} s and events, then the knot test)',
+            fewer,
+            None,
+        )
+    ]
+    if cfg.use_telemetry and telemetry:
+        out.append(('fewer knots, telemetry not fused', replace(fewer, use_telemetry=False), None))
+    return out
+
+
+def cut_span(
+    t0: float,
+    t1: float,
+    segments: Iterable[Segment],
+    start: bool = True,
+    end: bool = True,
+    min_span: float = MIN_CUT_S,
+) -> tuple[float, float] | None:
+    """``[t0, t1]`` cut at the boundaries of the incomplete ``segments`` (of every target)
+    that touch its edges (only at the start with ``start``, at the end with ``end``), or
+    None when none does or less than ``min_span`` seconds would remain."""
+    lo, hi = t0, t1
+    for a, b in segments:
+        if end and b >= t1 - EDGE_TOLERANCE_S and a > t0:
+            hi = min(hi, a)
+        if start and a <= t0 + EDGE_TOLERANCE_S and b < t1:
+            lo = max(lo, b)
+    if (lo, hi) == (t0, t1) or hi - lo < min_span:
+        return None
+    return lo, hi
+
+
+def edge_cut(failed: Estimate, min_span: float = MIN_CUT_S) -> tuple[float, float] | None:
+    """The span of ``failed`` (a window that was not a success) cut at the incomplete
+    segments at both its edges (:func:`cut_span`)."""
+    segs = [seg for sol in failed.targets.values() for seg in sol.segments]
+    return cut_span(failed.t0, failed.t1, segs, min_span=min_span)
+
+
+class EdgeNotSettled(EstimationError):
+    """A first solve that did not settle, with an incomplete segment at a window edge
+    that another window covers: raised by the estimator when asked to give up early
+    (``quick`` of :data:`Attempt`), with the span to solve instead."""
+
+    def __init__(self, span: tuple[float, float], decrement: float) -> None:
+        self.span = span
+        self.decrement = decrement
+        super().__init__(
+            f'the first solve did not settle (its Gauss-Newton step would still lower the '
+            f'cost by {decrement:.3g}) with an incomplete segment at the window edge'
+        )
+
+
+def _cut_label(span: tuple[float, float]) -> str:
+    return (
+        f'the window cut to [{span[0]:.2f}, {span[1]:.2f}] s, short of the incomplete segment '
+        'at its edge'
+    )
+
+
+def solve_with_retries(
+    attempt: Attempt,
+    t0: float,
+    t1: float,
+    cfg: EstimatorConfig,
+    previous: Mapping[int, TargetSolution] | None,
+    telemetry: bool,
+) -> Estimate:
+    """The first attempt, then the retries of the module docstring until one is a success
+    (``telemetry``: whether the window holds telemetry, for :func:`safer_settings`). With
+    ``cfg.retry`` the first attempt may give up early (:class:`EdgeNotSettled`): the span
+    it names is then the window."""
+    early = ''
+    try:
+        first = attempt(t0, t1, cfg, previous, cfg.retry)
+    except EdgeNotSettled as exc:
+        early = f'; {_cut_label(exc.span)}: {exc}'
+        t0, t1 = exc.span
+        first = attempt(t0, t1, cfg, previous, False)
+    if first.success or not cfg.retry:
+        return replace(first, message=first.message + early) if early else first
+    tried = [('the settings', first)]
+    plan: list[tuple[str, EstimatorConfig, Mapping[int, TargetSolution] | None, float, float]]
+    plan = []
+    cut = edge_cut(first)
+    if cut is not None:
+        plan.append((_cut_label(cut), cfg, previous, *cut))
+    plan += [(*s, t0, t1) for s in safer_settings(cfg, previous, telemetry)]
+    for label, cfg2, prev2, a, b in plan:
+        try:
+            e = attempt(a, b, cfg2, prev2, False)
+        except OrbitTrackingError as exc:
+            tried.append((label, replace(first, message=f'{label}: {exc}', chi2_dof=math.inf)))
+            continue
+        tried.append((label, e))
+        if e.success:
+            return replace(
+                e,
+                message=f'{e.message}; solved with {label} after: {first.message}{early}',
+                iterations=sum(t.iterations for _, t in tried),
+                attempts=len(tried),
+            )
+    best = min(tried, key=lambda t: t[1].chi2_dof if math.isfinite(t[1].chi2_dof) else math.inf)
+    text = ' | '.join(f'{label}: {e.message}' for label, e in tried)
+    return replace(
+        best[1],
+        success=False,
+        message=f'FAILED with every setting tried ({text}){early}',
+        iterations=sum(t.iterations for _, t in tried),
+        attempts=len(tried),
+    )
