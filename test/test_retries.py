@@ -192,8 +192,9 @@ def test_a_window_ending_inside_an_unanchored_segment_is_solved_cut_short_of_it(
 
 def test_the_first_solve_gives_up_only_on_an_unanchored_segment_another_window_covers():
     """Given up early: not settled, a segment at the edge without telemetry in it, and
-    data beyond the edge. Telemetry in the segment anchors it; without data beyond the edge
-    no other window covers it; a settled solve is kept."""
+    another window holding it (a window that follows; at the start, a previous window that
+    reaches past the segment). Telemetry in the segment anchors it; a settled solve (or one
+    within ``max_unconverged_decrement``) is kept."""
     from orbit_tracking.core.data.observations import Observations
     from orbit_tracking.core.data.tables import TargetStates
     from orbit_tracking.core.estimation.estimator import _give_up_early
@@ -206,16 +207,25 @@ def test_the_first_solve_gives_up_only_on_an_unanchored_segment_another_window_c
 
     cfg = EstimatorConfig()
     crawl = GnOutcome(np.zeros(3), 1.0, 20, 20, False, 'iteration limit', 637.0)
-    segs = {0: ((40.0, 60.0),)}
-    outage = tel((0.0, 39.0), (61.0, 90.0))
+    end = {0: ((40.0, 60.0),)}
+    outage = tel((0.0, 39.0)).window(0.0, 60.0)
     with pytest.raises(EdgeNotSettled) as info:
-        _give_up_early(crawl, outage.window(0.0, 60.0), outage, segs, cfg, 0.0, 60.0)
+        _give_up_early(crawl, outage, end, cfg, 0.0, 60.0, None, True)
     assert info.value.span == (0.0, 40.0) and info.value.decrement == 637.0
-    anchored = tel((0.0, 90.0))
-    _give_up_early(crawl, anchored.window(0.0, 60.0), anchored, segs, cfg, 0.0, 60.0)
-    last = tel((0.0, 39.0))  # nothing beyond the window's end
-    _give_up_early(crawl, last.window(0.0, 60.0), last, segs, cfg, 0.0, 60.0)
+    _give_up_early(crawl, outage, end, cfg, 0.0, 60.0, None, False)  # the last window
+    anchored = tel((0.0, 60.0))
+    _give_up_early(crawl, anchored, end, cfg, 0.0, 60.0, None, True)
     settled = GnOutcome(np.zeros(3), 1.0, 5, 0, True, 'converged', 1e-6)
-    _give_up_early(settled, outage.window(0.0, 60.0), outage, segs, cfg, 0.0, 60.0)
+    _give_up_early(settled, outage, end, cfg, 0.0, 60.0, None, True)
     near = GnOutcome(np.zeros(3), 1.0, 20, 20, False, 'iteration limit', 3.0)
-    _give_up_early(near, outage.window(0.0, 60.0), outage, segs, cfg, 0.0, 60.0)
+    _give_up_early(near, outage, end, cfg, 0.0, 60.0, None, True)
+    # at the start: only when the previous window reaches past the segment's end
+    start = {0: ((40.0, 55.0),)}
+    late = tel((56.0, 100.0)).window(40.0, 100.0)
+    reach = {0: SimpleNamespace(t1=60.0)}
+    with pytest.raises(EdgeNotSettled) as info:
+        _give_up_early(crawl, late, start, cfg, 40.0, 100.0, reach, True)  # type: ignore[arg-type]
+    assert info.value.span == (55.0, 100.0)
+    short = {0: SimpleNamespace(t1=50.0)}  # cut short of the same segment itself
+    _give_up_early(crawl, late, start, cfg, 40.0, 100.0, short, True)  # type: ignore[arg-type]
+    _give_up_early(crawl, late, start, cfg, 40.0, 100.0, None, True)

@@ -51,7 +51,7 @@ from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.dynamics.solve import RocketConfig, dynamics_window
 from orbit_tracking.core.estimation.bias_files import load_bias_declaration, station_fields
 from orbit_tracking.core.estimation.config import KNOT_METHODS, EstimatorConfig
-from orbit_tracking.core.estimation.estimator import estimate
+from orbit_tracking.core.estimation.estimator import COVERED_S, estimate
 from orbit_tracking.core.estimation.knots import KnotConfig, load_solver
 from orbit_tracking.core.estimation.results import Estimate, TargetSolution
 from orbit_tracking.core.estimation.windows import (
@@ -761,14 +761,20 @@ class EstimatorNode(WindowOutputs, StationInputs):
         obs = self.buffer.observations(t0, t1)
         withheld = Counter(self.buffer.withheld)
         previous = self.previous or None
+        more_after = bool(self.buffer.latest_time() > t1 + COVERED_S)  # a window follows
         self.worker.submit(
             (span, tb, obs, withheld),
-            lambda: self._core(obs, t0, t1, previous),
+            lambda: self._core(obs, t0, t1, previous, more_after),
             here=not self.background,
         )
 
     def _core(
-        self, obs: Observations, t0: float, t1: float, previous: dict[int, TargetSolution] | None
+        self,
+        obs: Observations,
+        t0: float,
+        t1: float,
+        previous: dict[int, TargetSolution] | None,
+        more_after: bool = False,
     ) -> Estimate:
         """The window's one core call (on the worker thread)."""
         ids = None if self.target_id < 0 else [self.target_id]
@@ -783,7 +789,7 @@ class EstimatorNode(WindowOutputs, StationInputs):
                 cfg.biases,
                 RocketConfig.for_frame(self.world_frame, stages=self.stages),
             )
-        return estimate(obs, t0, t1, cfg, ids, previous)
+        return estimate(obs, t0, t1, cfg, ids, previous, more_after=more_after)
 
     # -- biases --------------------------------------------------------------------
     def _window_config(self, obs: Observations) -> EstimatorConfig:

@@ -88,7 +88,12 @@ from orbit_tracking.core.estimation.observability import (
 )
 from orbit_tracking.core.estimation.problem import Problem
 from orbit_tracking.core.estimation.results import Estimate, TargetSolution, state_covariance
-from orbit_tracking.core.estimation.retries import EdgeNotSettled, cut_span, solve_with_retries
+from orbit_tracking.core.estimation.retries import (
+    EDGE_TOLERANCE_S,
+    EdgeNotSettled,
+    cut_span,
+    solve_with_retries,
+)
 from orbit_tracking.core.estimation.telemetry_block import TelemetryBlock
 from orbit_tracking.core.estimation.telemetry_delays import delay_test, solve_with_aligned_events
 from orbit_tracking.core.estimation.telemetry_evidence import (
@@ -103,7 +108,7 @@ from orbit_tracking.core.estimation.telemetry_velocity import (
 from orbit_tracking.core.estimation.verdict import judge
 from orbit_tracking.core.models.measurements import residual
 
-__all__ = ['REFINE_MAX_CHI2', 'estimate']
+__all__ = ['COVERED_S', 'REFINE_MAX_CHI2', 'estimate']
 
 FloatArray = NDArray[np.float64]
 
@@ -195,11 +200,13 @@ def _estimate_once(
     previous: Mapping[int, TargetSolution] | None = None,
     frame: tuple[FloatArray, FloatArray] | None = None,
     quick: bool = False,
+    more_after: bool = False,
 ) -> Estimate:
     """Estimate the trajectories of ``target_ids`` over [t0, t1] from ``obs``.
 
     With ``quick`` a first solve that does not settle, with an incomplete segment at a
-    window edge that data beyond the edge let another window cover, raises
+    window edge that another window covers (``previous`` at the start, ``more_after``: a
+    window follows this one), raises
     :class:`~orbit_tracking.core.estimation.retries.EdgeNotSettled` naming the span to
     solve instead (:func:`_give_up_early`).
 
@@ -333,7 +340,7 @@ def _estimate_once(
         prob.gated.clear()
         out, r, jac, cov, cond, singular = solve_on(prob, start)
     if quick:
-        _give_up_early(out, obs, everything, segments, cfg, t0, t1)
+        _give_up_early(out, obs, segments, cfg, t0, t1, previous, more_after)
     noisy = [t for t, s in selections.items() if s.rough_source == 'fixes']
     if noisy and cfg.knot_method == 'sparse':
         # fixes are a poor rough trajectory (no velocity, metres of noise): select the
@@ -711,6 +718,7 @@ def estimate(
     target_ids: Sequence[int] | None = None,
     previous: Mapping[int, TargetSolution] | None = None,
     frame: tuple[FloatArray, FloatArray] | None = None,
+    more_after: bool | None = None,
 ) -> Estimate:
     """Estimate the trajectories of ``target_ids`` over [t0, t1] from ``obs``.
 
@@ -736,6 +744,10 @@ def estimate(
     frame : (origin, rotation), optional
         Spline frame (e.g. the launch frame); default a launch-like frame at the first
         rough point.
+    more_after : bool, optional
+        Whether another window follows this one (it covers an incomplete segment at this
+        window's end: :mod:`~orbit_tracking.core.estimation.retries`). Default: whether
+        ``obs`` holds data more than :data:`COVERED_S` after ``t1``.
 
     Raises
     ------
@@ -746,6 +758,8 @@ def estimate(
         cannot fail the others' window).
     """
     cfg = cfg or EstimatorConfig()
+    if more_after is None:
+        more_after = bool(obs.measured_span()[1] > t1 + COVERED_S)
     fitted = obs if cfg.use_telemetry else obs.without_telemetry()
     t0, t1, edge_note = _measured_edges(fitted, t0, t1, cfg.edge_gap)
     telemetry = any(np.any((v.time >= t0) & (v.time <= t1)) for v in obs.telemetry.values())
@@ -757,7 +771,7 @@ def estimate(
         prev: Mapping[int, TargetSolution] | None,
         quick: bool,
     ) -> Estimate:
-        return _attempt(obs, a, b, c, target_ids, prev, frame, quick)
+        return _attempt(obs, a, b, c, target_ids, prev, frame, quick, more_after)
 
     first = solve_with_retries(attempt, t0, t1, cfg, previous, telemetry)
     if edge_note:
@@ -766,40 +780,43 @@ def estimate(
 
 
 COVERED_S = 1.0
-"""Data more than this [s] beyond a window edge mean another window covers what lies
-beyond it (:func:`_give_up_early`)."""
+"""Data more than this [s] after a window's end mean another window follows it
+(``more_after`` of :func:`estimate`)."""
 
 
 def _give_up_early(
     out: GnOutcome,
     obs: Observations,
-    everything: Observations,
     segments: Mapping[int, tuple[Segment, ...]],
     cfg: EstimatorConfig,
     t0: float,
     t1: float,
+    previous: Mapping[int, TargetSolution] | None,
+    more_after: bool,
 ) -> None:
     """Raise :class:`~orbit_tracking.core.estimation.retries.EdgeNotSettled` when the first
     solve did not settle (not converged, and beyond ``max_unconverged_decrement``) and an
-    incomplete segment without telemetry lies at a window edge with data beyond it: the
-    solve would crawl along the segment's unanchored valley for many rounds (robustness
-    ascent draw 1022 of the scratch seeds: 23 s, then failed), while the window next to it
-    covers the segment with data on both sides. A segment with telemetry in it is anchored
-    by it (draw 1028: such a window, cut, lost the leverage of its last 18 s on the
-    telemetry's error and its error outside the segment grew from 0.79 to 1.22 times the
-    bound). The span to solve instead is
-    :func:`~orbit_tracking.core.estimation.retries.cut_span`'s."""
+    incomplete segment without telemetry lies at a window edge where another window covers
+    it: at the start, a ``previous`` window reaching past the segment's end; at the end,
+    one that follows (``more_after``). The solve would crawl along the segment's
+    unanchored valley for many rounds (robustness ascent draw 1022 of the scratch seeds:
+    23 s, then failed). A segment with telemetry in it is anchored by it (draw 1028: such a
+    window, cut, lost the leverage of its last 18 s on the telemetry's error and its error
+    outside the segment grew from 0.79 to 1.22 times the bound). The span to solve instead
+    is :func:`~orbit_tracking.core.estimation.retries.cut_span`'s."""
     if out.converged or not out.decrement > cfg.max_unconverged_decrement:
         return
-    a, b = everything.measured_span()
-    tel = [v.time for tid, v in obs.telemetry.items() if tid in segments and cfg.use_telemetry]
-    segs = [
-        (x, y)
-        for s in segments.values()
-        for x, y in s
-        if not any(np.any((t >= x) & (t <= y)) for t in tel)
-    ]
-    span = cut_span(t0, t1, segs, start=a < t0 - COVERED_S, end=b > t1 + COVERED_S)
+    segs = []
+    for tid, spans in segments.items():
+        tel = obs.telemetry.get(tid) if cfg.use_telemetry else None
+        prev = previous.get(tid) if previous else None
+        for x, y in spans:
+            if tel is not None and np.any((tel.time >= x) & (tel.time <= y)):
+                continue
+            if x <= t0 + EDGE_TOLERANCE_S and (prev is None or prev.t1 < y):
+                continue  # no window before this one holds the segment
+            segs.append((x, y))
+    span = cut_span(t0, t1, segs, end=more_after)
     if span is not None:
         raise EdgeNotSettled(span, out.decrement)
 
@@ -838,11 +855,12 @@ def _attempt(
     previous: Mapping[int, TargetSolution] | None,
     frame: tuple[FloatArray, FloatArray] | None,
     quick: bool = False,
+    more_after: bool = False,
 ) -> Estimate:
     """One solve; a numerical breakdown (LAPACK not converging on a matrix that overflowed)
     is an :class:`EstimationError` of that window, never an exception that stops a pass."""
     try:
-        return _estimate_once(obs, t0, t1, cfg, target_ids, previous, frame, quick)
+        return _estimate_once(obs, t0, t1, cfg, target_ids, previous, frame, quick, more_after)
     except (np.linalg.LinAlgError, FloatingPointError) as exc:
         raise EstimationError(f'numerical failure: {type(exc).__name__}: {exc}') from exc
 

@@ -12,10 +12,11 @@ cut 5 s into its segment crawled as the whole one had). A longer segment reachin
 edges of both windows is held by neither with data on both sides, and is left out. The
 cut is made in two ways:
 
-* when the segment holds no telemetry (telemetry anchors it) and there are data beyond
-  that edge (a neighbouring window exists), the first attempt gives up as soon as its
-  first solve has not settled (:class:`EdgeNotSettled`) and the cut span becomes the
-  window, for the solve and every retry below;
+* when the segment holds no telemetry (telemetry anchors it) and another window covers
+  it (at the start: the previous window reaches past the segment's end; at the end: a
+  window follows), the first attempt gives up as soon as its first solve has not settled
+  (:class:`EdgeNotSettled`) and the cut span becomes the window, for the solve and every
+  retry below;
 * a window that failed otherwise is solved cut as its first retry (:func:`edge_cut`): a
   cut window publishes what its data hold, a failed one nothing.
 
@@ -38,6 +39,7 @@ from orbit_tracking.core.estimation.config import EstimationError, EstimatorConf
 from orbit_tracking.core.estimation.results import Estimate, TargetSolution
 
 __all__ = [
+    'EDGE_TOLERANCE_S',
     'MIN_CUT_S',
     'Attempt',
     'EdgeNotSettled',
