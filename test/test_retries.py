@@ -123,6 +123,25 @@ def test_cut_span_cuts_only_the_edges_asked_for():
     assert cut_span(0.0, 60.0, segs, start=False, end=False) is None
 
 
+def test_no_cut_that_would_end_before_the_previous_window():
+    """A window cut to end before the previous window's end adds nothing to it, and the
+    results node would take it for time going back: not tried, neither as a retry nor
+    when giving up early."""
+    segs = ((55.0, 100.0),)
+    assert cut_span(40.0, 100.0, segs) == (40.0, 55.0)
+    assert cut_span(40.0, 100.0, segs, after=60.0) is None
+    assert cut_span(40.0, 100.0, segs, after=50.0) == (40.0, 55.0)
+    calls: list[tuple[float, float, str]] = []
+
+    def attempt(a, b, cfg, prev, quick):
+        calls.append((a, b, cfg.knot_method))
+        return _estimate(a, b, False, target0=(segs, ()))
+
+    previous = {0: SimpleNamespace(t1=60.0)}
+    solve_with_retries(attempt, 40.0, 100.0, EstimatorConfig(), previous, telemetry=False)
+    assert calls == [(40.0, 100.0, 'sparse'), (40.0, 100.0, 'dynamics')]
+
+
 def test_a_first_attempt_that_gives_up_early_is_solved_cut_at_once():
     """The first attempt (asked to be quick) raises EdgeNotSettled: the span it names is
     solved next, not quick; its success is returned, naming why."""

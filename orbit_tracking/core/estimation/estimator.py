@@ -92,6 +92,7 @@ from orbit_tracking.core.estimation.retries import (
     EDGE_TOLERANCE_S,
     EdgeNotSettled,
     cut_span,
+    previous_end,
     solve_with_retries,
 )
 from orbit_tracking.core.estimation.telemetry_block import TelemetryBlock
@@ -816,7 +817,7 @@ def _give_up_early(
             if x <= t0 + EDGE_TOLERANCE_S and (prev is None or prev.t1 < y):
                 continue  # no window before this one holds the segment
             segs.append((x, y))
-    span = cut_span(t0, t1, segs, end=more_after)
+    span = cut_span(t0, t1, segs, end=more_after, after=previous_end(previous))
     if span is not None:
         raise EdgeNotSettled(span, out.decrement)
 

@@ -45,6 +45,7 @@ __all__ = [
     'EdgeNotSettled',
     'cut_span',
     'edge_cut',
+    'previous_end',
     'safer_settings',
     'solve_with_retries',
 ]
@@ -97,26 +98,37 @@ def cut_span(
     start: bool = True,
     end: bool = True,
     min_span: float = MIN_CUT_S,
+    after: float = -math.inf,
 ) -> tuple[float, float] | None:
     """``[t0, t1]`` cut at the boundaries of the incomplete ``segments`` (of every target)
     that touch its edges (only at the start with ``start``, at the end with ``end``), or
-    None when none does or less than ``min_span`` seconds would remain."""
+    None when none does, less than ``min_span`` seconds would remain, or the cut window
+    would not end after ``after`` (the previous window's end: a window that ends earlier
+    adds nothing to it, and the results node takes a window ending before the last one
+    for time going back)."""
     lo, hi = t0, t1
     for a, b in segments:
         if end and b >= t1 - EDGE_TOLERANCE_S and a > t0:
             hi = min(hi, a)
         if start and a <= t0 + EDGE_TOLERANCE_S and b < t1:
             lo = max(lo, b)
-    if (lo, hi) == (t0, t1) or hi - lo < min_span:
+    if (lo, hi) == (t0, t1) or hi - lo < min_span or not hi > after:
         return None
     return lo, hi
 
 
-def edge_cut(failed: Estimate, min_span: float = MIN_CUT_S) -> tuple[float, float] | None:
+def previous_end(previous: Mapping[int, TargetSolution] | None) -> float:
+    """The end of the previous window's solution (-inf without one)."""
+    return max((p.t1 for p in previous.values()), default=-math.inf) if previous else -math.inf
+
+
+def edge_cut(
+    failed: Estimate, min_span: float = MIN_CUT_S, after: float = -math.inf
+) -> tuple[float, float] | None:
     """The span of ``failed`` (a window that was not a success) cut at the incomplete
     segments at both its edges (:func:`cut_span`)."""
     segs = [seg for sol in failed.targets.values() for seg in sol.segments]
-    return cut_span(failed.t0, failed.t1, segs, min_span=min_span)
+    return cut_span(failed.t0, failed.t1, segs, min_span=min_span, after=after)
 
 
 class EdgeNotSettled(EstimationError):
@@ -164,7 +176,7 @@ def solve_with_retries(
     tried = [('the settings', first)]
     plan: list[tuple[str, EstimatorConfig, Mapping[int, TargetSolution] | None, float, float]]
     plan = []
-    cut = edge_cut(first)
+    cut = edge_cut(first, after=previous_end(previous))
     if cut is not None:
         plan.append((_cut_label(cut), cfg, previous, *cut))
     plan += [(*s, t0, t1) for s in safer_settings(cfg, previous, telemetry)]
