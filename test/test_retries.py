@@ -90,6 +90,21 @@ def test_the_cut_window_is_tried_first_and_its_success_is_returned():
     assert 'cut to [0.00, 40.00] s' in out.message and 'FAILED' in out.message
 
 
+def test_a_window_whose_fit_was_inconsistent_tries_the_safer_settings_before_the_cut():
+    """A failed fit that does not fit the data (chi2/dof far above its limit) is not what
+    an edge segment does: the safer settings, its own remedy, come first (robustness ascent
+    draw 88, time-skewed telemetry: cut first, the window's position error was 0.64 m RMS
+    and the draw's 4.3 times its bound; with fewer knots first, 0.06 m)."""
+    calls: list[tuple[float, float, str]] = []
+
+    def attempt(a, b, cfg, prev, quick):
+        calls.append((a, b, cfg.knot_method))
+        return _estimate(a, b, False, chi2=5522.0, target0=(((0.0, 6.0),), ()))
+
+    solve_with_retries(attempt, 0.0, 60.0, EstimatorConfig(), None, telemetry=False)
+    assert calls == [(0.0, 60.0, 'sparse'), (0.0, 60.0, 'dynamics'), (6.0, 60.0, 'sparse')]
+
+
 def test_without_a_segment_at_an_edge_the_safer_settings_follow_and_all_failing_fails():
     calls: list[tuple[float, float, str, bool]] = []
 
