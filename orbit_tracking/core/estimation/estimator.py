@@ -1,6 +1,6 @@
 """Trajectory estimation on a window of raw measurements (seed 000).
 
-(About 840 lines, over the ~600-line guide: the steps of one window solve, from the
+(About 910 lines, half again the ~600-line guide: the steps of one window solve, from the
 knots to the verdict, read best in one place; its parts live in the modules it imports,
 the retries of a failed window in :mod:`~orbit_tracking.core.estimation.retries`.)
 
