@@ -160,7 +160,7 @@ def test_the_estimator_solves_a_bounded_number_of_windows_per_call():
         try:
             solved: list = []
             gate = threading.Event()
-            node._core = lambda obs, t0, t1, previous: gate.wait(10.0)  # the worker's call
+            node._core = lambda *_args: gate.wait(10.0)  # the worker's call
             node._finish = lambda job: solved.append(job.context[0]) or True
             for k in range(60):
                 node._on_measurements(_ranges(1, t=0.5 * k), 'cw01')
@@ -188,7 +188,7 @@ def test_without_the_background_worker_the_timer_waits_for_its_solves():
         node = mod.EstimatorNode()
         try:
             solved: list = []
-            node._core = lambda obs, t0, t1, previous: None
+            node._core = lambda *_args: None
             node._finish = lambda job: solved.append(job.context[0]) or True
             for k in range(60):
                 node._on_measurements(_ranges(1, t=0.5 * k), 'cw01')
