@@ -18,6 +18,7 @@ from orbit_tracking.core.estimation.retries import (
     EdgeNotSettled,
     cut_span,
     edge_cut,
+    give_up_early,
     solve_with_retries,
 )
 
@@ -231,7 +232,6 @@ def test_the_first_solve_gives_up_only_on_an_unanchored_segment_another_window_c
     within ``max_unconverged_decrement``) is kept."""
     from orbit_tracking.core.data.observations import Observations
     from orbit_tracking.core.data.tables import TargetStates
-    from orbit_tracking.core.estimation.estimator import _give_up_early
     from orbit_tracking.core.estimation.gauss_newton import GnOutcome
 
     def tel(*spans):  # telemetry at 10 Hz over the spans (only its times matter here)
@@ -244,22 +244,22 @@ def test_the_first_solve_gives_up_only_on_an_unanchored_segment_another_window_c
     end = {0: ((40.0, 60.0),)}
     outage = tel((0.0, 39.0)).window(0.0, 60.0)
     with pytest.raises(EdgeNotSettled) as info:
-        _give_up_early(crawl, outage, end, cfg, 0.0, 60.0, None, True)
+        give_up_early(crawl, outage, end, cfg, 0.0, 60.0, None, True)
     assert info.value.span == (0.0, 40.0) and info.value.decrement == 637.0
-    _give_up_early(crawl, outage, end, cfg, 0.0, 60.0, None, False)  # the last window
+    give_up_early(crawl, outage, end, cfg, 0.0, 60.0, None, False)  # the last window
     anchored = tel((0.0, 60.0))
-    _give_up_early(crawl, anchored, end, cfg, 0.0, 60.0, None, True)
+    give_up_early(crawl, anchored, end, cfg, 0.0, 60.0, None, True)
     settled = GnOutcome(np.zeros(3), 1.0, 5, 0, True, 'converged', 1e-6)
-    _give_up_early(settled, outage, end, cfg, 0.0, 60.0, None, True)
+    give_up_early(settled, outage, end, cfg, 0.0, 60.0, None, True)
     near = GnOutcome(np.zeros(3), 1.0, 20, 20, False, 'iteration limit', 3.0)
-    _give_up_early(near, outage, end, cfg, 0.0, 60.0, None, True)
+    give_up_early(near, outage, end, cfg, 0.0, 60.0, None, True)
     # at the start: only when the previous window reaches past the segment's end
     start = {0: ((40.0, 55.0),)}
     late = tel((56.0, 100.0)).window(40.0, 100.0)
     reach = {0: SimpleNamespace(t1=60.0)}
     with pytest.raises(EdgeNotSettled) as info:
-        _give_up_early(crawl, late, start, cfg, 40.0, 100.0, reach, True)  # type: ignore[arg-type]
+        give_up_early(crawl, late, start, cfg, 40.0, 100.0, reach, True)  # type: ignore[arg-type]
     assert info.value.span == (55.0, 100.0)
     short = {0: SimpleNamespace(t1=50.0)}  # cut short of the same segment itself
-    _give_up_early(crawl, late, start, cfg, 40.0, 100.0, short, True)  # type: ignore[arg-type]
-    _give_up_early(crawl, late, start, cfg, 40.0, 100.0, None, True)
+    give_up_early(crawl, late, start, cfg, 40.0, 100.0, short, True)  # type: ignore[arg-type]
+    give_up_early(crawl, late, start, cfg, 40.0, 100.0, None, True)

@@ -51,9 +51,10 @@ from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.dynamics.solve import RocketConfig, dynamics_window
 from orbit_tracking.core.estimation.bias_files import load_bias_declaration, station_fields
 from orbit_tracking.core.estimation.config import KNOT_METHODS, EstimatorConfig
-from orbit_tracking.core.estimation.estimator import COVERED_S, estimate
+from orbit_tracking.core.estimation.estimator import estimate
 from orbit_tracking.core.estimation.knots import KnotConfig, load_solver
 from orbit_tracking.core.estimation.results import Estimate, TargetSolution
+from orbit_tracking.core.estimation.retries import COVERED_S
 from orbit_tracking.core.estimation.windows import (
     Span,
     WindowConfig,

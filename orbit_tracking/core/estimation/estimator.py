@@ -1,6 +1,6 @@
 """Trajectory estimation on a window of raw measurements (seed 000).
 
-(About 910 lines, half again the ~600-line guide: the steps of one window solve, from the
+(About 870 lines, over the ~600-line guide: the steps of one window solve, from the
 knots to the verdict, read best in one place; its parts live in the modules it imports,
 the retries of a failed window in :mod:`~orbit_tracking.core.estimation.retries`.)
 
@@ -89,10 +89,8 @@ from orbit_tracking.core.estimation.observability import (
 from orbit_tracking.core.estimation.problem import Problem
 from orbit_tracking.core.estimation.results import Estimate, TargetSolution, state_covariance
 from orbit_tracking.core.estimation.retries import (
-    EDGE_TOLERANCE_S,
-    EdgeNotSettled,
-    cut_span,
-    previous_end,
+    COVERED_S,
+    give_up_early,
     solve_with_retries,
 )
 from orbit_tracking.core.estimation.telemetry_block import TelemetryBlock
@@ -109,7 +107,7 @@ from orbit_tracking.core.estimation.telemetry_velocity import (
 from orbit_tracking.core.estimation.verdict import judge
 from orbit_tracking.core.models.measurements import residual
 
-__all__ = ['COVERED_S', 'REFINE_MAX_CHI2', 'estimate']
+__all__ = ['REFINE_MAX_CHI2', 'estimate']
 
 FloatArray = NDArray[np.float64]
 
@@ -209,7 +207,7 @@ def _estimate_once(
     window edge that another window covers (``previous`` at the start, ``more_after``: a
     window follows this one), raises
     :class:`~orbit_tracking.core.estimation.retries.EdgeNotSettled` naming the span to
-    solve instead (:func:`_give_up_early`).
+    solve instead (:func:`~orbit_tracking.core.estimation.retries.give_up_early`).
 
     Parameters
     ----------
@@ -341,7 +339,7 @@ def _estimate_once(
         prob.gated.clear()
         out, r, jac, cov, cond, singular = solve_on(prob, start)
     if quick:
-        _give_up_early(out, obs, segments, cfg, t0, t1, previous, more_after)
+        give_up_early(out, obs, segments, cfg, t0, t1, previous, more_after)
     noisy = [t for t, s in selections.items() if s.rough_source == 'fixes']
     if noisy and cfg.knot_method == 'sparse':
         # fixes are a poor rough trajectory (no velocity, metres of noise): select the
@@ -748,7 +746,8 @@ def estimate(
     more_after : bool, optional
         Whether another window follows this one (it covers an incomplete segment at this
         window's end: :mod:`~orbit_tracking.core.estimation.retries`). Default: whether
-        ``obs`` holds data more than :data:`COVERED_S` after ``t1``.
+        ``obs`` holds data more than
+        :data:`~orbit_tracking.core.estimation.retries.COVERED_S` after ``t1``.
 
     Raises
     ------
@@ -778,48 +777,6 @@ def estimate(
     if edge_note:
         first = replace(first, message=f'{first.message}; {edge_note}')
     return first
-
-
-COVERED_S = 1.0
-"""Data more than this [s] after a window's end mean another window follows it
-(``more_after`` of :func:`estimate`)."""
-
-
-def _give_up_early(
-    out: GnOutcome,
-    obs: Observations,
-    segments: Mapping[int, tuple[Segment, ...]],
-    cfg: EstimatorConfig,
-    t0: float,
-    t1: float,
-    previous: Mapping[int, TargetSolution] | None,
-    more_after: bool,
-) -> None:
-    """Raise :class:`~orbit_tracking.core.estimation.retries.EdgeNotSettled` when the first
-    solve did not settle (not converged, and beyond ``max_unconverged_decrement``) and an
-    incomplete segment without telemetry lies at a window edge where another window covers
-    it: at the start, a ``previous`` window reaching past the segment's end; at the end,
-    one that follows (``more_after``). The solve would crawl along the segment's
-    unanchored valley for many rounds (robustness ascent draw 1022 of the scratch seeds:
-    23 s, then failed). A segment with telemetry in it is anchored by it (draw 1028: such a
-    window, cut, lost the leverage of its last 18 s on the telemetry's error and its error
-    outside the segment grew from 0.79 to 1.22 times the bound). The span to solve instead
-    is :func:`~orbit_tracking.core.estimation.retries.cut_span`'s."""
-    if out.converged or not out.decrement > cfg.max_unconverged_decrement:
-        return
-    segs = []
-    for tid, spans in segments.items():
-        tel = obs.telemetry.get(tid) if cfg.use_telemetry else None
-        prev = previous.get(tid) if previous else None
-        for x, y in spans:
-            if tel is not None and np.any((tel.time >= x) & (tel.time <= y)):
-                continue
-            if x <= t0 + EDGE_TOLERANCE_S and (prev is None or prev.t1 < y):
-                continue  # no window before this one holds the segment
-            segs.append((x, y))
-    span = cut_span(t0, t1, segs, end=more_after, after=previous_end(previous))
-    if span is not None:
-        raise EdgeNotSettled(span, out.decrement)
 
 
 def _measured_edges(

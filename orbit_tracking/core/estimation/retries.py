@@ -38,17 +38,23 @@ import math
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import replace
 
+import numpy as np
+
+from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.errors import OrbitTrackingError
 from orbit_tracking.core.estimation.config import EstimationError, EstimatorConfig, Segment
+from orbit_tracking.core.estimation.gauss_newton import GnOutcome
 from orbit_tracking.core.estimation.results import Estimate, TargetSolution
 
 __all__ = [
+    'COVERED_S',
     'EDGE_TOLERANCE_S',
     'MIN_CUT_S',
     'Attempt',
     'EdgeNotSettled',
     'cut_span',
     'edge_cut',
+    'give_up_early',
     'previous_end',
     'safer_settings',
     'solve_with_retries',
@@ -147,6 +153,48 @@ class EdgeNotSettled(EstimationError):
             f'the first solve did not settle (its Gauss-Newton step would still lower the '
             f'cost by {decrement:.3g}) with an incomplete segment at the window edge'
         )
+
+
+COVERED_S = 1.0
+"""Data more than this [s] after a window's end mean another window follows it
+(``more_after`` of :func:`~orbit_tracking.core.estimation.estimator.estimate`)."""
+
+
+def give_up_early(
+    out: GnOutcome,
+    obs: Observations,
+    segments: Mapping[int, tuple[Segment, ...]],
+    cfg: EstimatorConfig,
+    t0: float,
+    t1: float,
+    previous: Mapping[int, TargetSolution] | None,
+    more_after: bool,
+) -> None:
+    """Raise :class:`~orbit_tracking.core.estimation.retries.EdgeNotSettled` when the first
+    solve did not settle (not converged, and beyond ``max_unconverged_decrement``) and an
+    incomplete segment without telemetry lies at a window edge where another window covers
+    it: at the start, a ``previous`` window reaching past the segment's end; at the end,
+    one that follows (``more_after``). The solve would crawl along the segment's
+    unanchored valley for many rounds (robustness ascent draw 1022 of the scratch seeds:
+    23 s, then failed). A segment with telemetry in it is anchored by it (draw 1028: such a
+    window, cut, lost the leverage of its last 18 s on the telemetry's error and its error
+    outside the segment grew from 0.79 to 1.22 times the bound). The span to solve instead
+    is :func:`~orbit_tracking.core.estimation.retries.cut_span`'s."""
+    if out.converged or not out.decrement > cfg.max_unconverged_decrement:
+        return
+    segs = []
+    for tid, spans in segments.items():
+        tel = obs.telemetry.get(tid) if cfg.use_telemetry else None
+        prev = previous.get(tid) if previous else None
+        for x, y in spans:
+            if tel is not None and np.any((tel.time >= x) & (tel.time <= y)):
+                continue
+            if x <= t0 + EDGE_TOLERANCE_S and (prev is None or prev.t1 < y):
+                continue  # no window before this one holds the segment
+            segs.append((x, y))
+    span = cut_span(t0, t1, segs, end=more_after, after=previous_end(previous))
+    if span is not None:
+        raise EdgeNotSettled(span, out.decrement)
 
 
 def _cut_label(span: tuple[float, float]) -> str:
