@@ -29,14 +29,16 @@ def core_fixes(name: str):
     return pipe.flush()
 
 
-def start_triangulation_and_listen(start_process, node_command, rclpy_node, spin_until):
+def start_triangulation_and_listen(
+    start_process, node_command, rclpy_node, spin_until, flush_after=1.0
+):
     """Start the triangulation node; return it and the list its fixes arrive in, once the
     test's subscriber sees the node's publisher (no fix lost to discovery)."""
     from geometry_msgs.msg import PoseWithCovarianceStamped
 
     from orbit_tracking.ros import qos
 
-    tri = start_process(node_command('triangulation_node', lag=0.5, flush_after=1.0))
+    tri = start_process(node_command('triangulation_node', lag=0.5, flush_after=flush_after))
     got: list[PoseWithCovarianceStamped] = []
     rclpy_node.create_subscription(
         PoseWithCovarianceStamped, 'triangulation/fixes', got.append, qos.STATE_STREAM
@@ -259,14 +261,19 @@ def test_replaying_a_bag_into_the_node_reproduces_the_offline_fixes(
     tmp_path, start_process, node_command, rclpy_node, spin_until
 ):
     """Replay regression: a recorded pass played back over DDS gives the same fixes as the
-    offline tool on the same bag."""
+    offline tool on the same bag; the epochs its lag holds at the end come on ``~/flush``
+    (the node would wait a minute for them itself)."""
     import sys
+
+    from std_srvs.srv import Trigger
 
     bag = tmp_path / 'bag'
     assert cli_main(['simulate', '--scenario', 'seed003_q2', '--out', str(bag), '--quiet']) == 0
     assert cli_main(['triangulate', str(bag), '--out', str(tmp_path / 'tri'), '--quiet']) == 0
     offline = read_fixes_csv(tmp_path / 'tri' / 'fixes.csv')
-    _tri, got = start_triangulation_and_listen(start_process, node_command, rclpy_node, spin_until)
+    _tri, got = start_triangulation_and_listen(
+        start_process, node_command, rclpy_node, spin_until, flush_after=60.0
+    )
     player = start_process(
         [
             sys.executable,
@@ -283,14 +290,27 @@ def test_replaying_a_bag_into_the_node_reproduces_the_offline_fixes(
         ],
         label='play',
     )
+    assert player.wait(timeout=60) == 0
+    assert 'played 2398 messages' in player.output()  # 600 + 599 measurements and states
+    seen = -1
+    while len(got) != seen:  # until no fix came for 1.5 s: the lag's epochs stay held
+        seen = len(got)
+        end = time.monotonic() + 1.5
+        while time.monotonic() < end:
+            rclpy_node.executor.spin_once(timeout_sec=0.05)
+    held = len(offline['time']) - len(got)
+    assert held >= 1, held
+    client = rclpy_node.create_client(Trigger, '/triangulation/flush')
+    assert client.wait_for_service(timeout_sec=10.0)
+    future = client.call_async(Trigger.Request())
+    spin_until(rclpy_node, future.done, 20, 'the ~/flush answer')
+    assert future.result().message == f'fixed {held} held epoch(s)'
     spin_until(
         rclpy_node,
         lambda: len(got) >= len(offline['time']),
-        60,
+        20,
         lambda: f'{len(offline["time"])} fixes, got {len(got)}',
     )
-    assert player.wait(timeout=20) == 0
-    assert 'played 2398 messages' in player.output()  # 600 + 599 measurements and states
     pos = np.array(
         [[m.pose.pose.position.x, m.pose.pose.position.y, m.pose.pose.position.z] for m in got]
     )

@@ -6,6 +6,10 @@ common epochs, and publishes one ``geometry_msgs/PoseWithCovarianceStamped`` per
 and epoch on ``triangulation/fixes`` (and on ``triangulation/target_<id>/fixes``), plus
 ``/diagnostics``: fixes made, rejections by reason, processing time.
 
+The epochs its ``lag`` still holds are fixed when the data stop for ``flush_after`` wall
+seconds, or at once on the ``~/flush`` service (``std_srvs/Trigger``: the end of a pass or
+of a replay, without waiting).
+
 Example::
 
     ros2 run orbit_tracking triangulation --ros-args -p stations:="['sat06', 'sat09']"
@@ -20,6 +24,7 @@ from collections import Counter
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.publisher import Publisher
+from std_srvs.srv import Trigger
 
 from orbit_tracking.core.triangulation.alignment import AlignConfig
 from orbit_tracking.core.triangulation.intersection import REASONS, Gates
@@ -169,6 +174,7 @@ class TriangulationNode(StationInputs):
         self._start_station_inputs(station_filter, self.time_reference)
         self.create_timer(1.0, self._publish_diagnostics)
         self.create_timer(0.2, lambda: self._guarded('flush', self._flush_if_idle))
+        self.create_service(Trigger, '~/flush', self._on_flush)
         self.get_logger().info(f'triangulating {self._stations_text()}')
 
     # -- callbacks -----------------------------------------------------------------
@@ -214,19 +220,28 @@ class TriangulationNode(StationInputs):
     def _flush_if_idle(self) -> None:
         """When the data stop (end of a pass, end of a replay), fix the epochs the lag
         still holds instead of waiting for data that will not come."""
-        if (
-            self.flushed
-            or self.timebase is None
-            or time.monotonic() - self.last_data < self.flush_after
-        ):
-            return
+        if time.monotonic() - self.last_data >= self.flush_after:
+            self._flush(f'data idle for {self.flush_after:g} s')
+
+    def _flush(self, why: str) -> int:
+        """Fix the epochs the lag holds (once per stretch of data); how many were fixed."""
+        if self.flushed or self.timebase is None:
+            return 0
         self.flushed = True
         fixes = self.pipeline.process(until=self.pipeline.aligner.latest)
         self._publish(fixes, self.timebase)
         if fixes:
-            self.get_logger().info(
-                f'data idle for {self.flush_after:g} s: fixed {len(fixes)} held epoch(s)'
-            )
+            self.get_logger().info(f'{why}: fixed {len(fixes)} held epoch(s)')
+        return len(fixes)
+
+    def _on_flush(self, _req: Trigger.Request, resp: Trigger.Response) -> Trigger.Response:
+        """``~/flush``: the end of the stream now (the fixes are published before the
+        answer)."""
+        fixed: list[int] = []
+        self._guarded('flush', lambda: fixed.append(self._flush('asked (~/flush)')))
+        resp.success = bool(fixed)
+        resp.message = f'fixed {fixed[0]} held epoch(s)' if fixed else 'the flush failed (logged)'
+        return resp
 
     def _on_time_reset(self) -> str:
         """Time went back (see StationInputs): fix the epochs the lag still holds, then

@@ -177,6 +177,7 @@ class Participants:
         )
         self.solve = self.node.create_client(Trigger, '/estimator/solve')
         self.flush = self.node.create_client(Trigger, '/results/flush')
+        self.tri_flush = self.node.create_client(Trigger, '/triangulation/flush')
         self._trigger = Trigger
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._spin, daemon=True)

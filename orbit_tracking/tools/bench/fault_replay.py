@@ -16,8 +16,9 @@
    *phase*: the injector publishes the class's messages, built from the real messages just
    replayed, and the run waits for a ``/diagnostics`` status of every node that shows them
    taken (:meth:`Participants.settled`). The counters that grew meanwhile are the class's.
-4. After the last message the estimator solves what it holds (``~/solve``) and the results
-   node publishes what it holds (``~/flush``); the run keeps every ``trajectory/states``
+4. After the last message the estimator solves what it holds (``~/solve``), the results
+   node publishes what it holds (``~/flush``) and the triangulation node fixes the epochs
+   its lag holds (``~/flush``); the run keeps every ``trajectory/states``
    message, the final counters, the nodes' exit statuses after SIGINT and the tracebacks
    in their logs (inside a phase: the phase's; elsewhere: the replay's).
 
@@ -25,9 +26,8 @@ A node that exits, or shows nothing new for :data:`SETTLE_S` seconds, ends the r
 a phase it is the phase's class's doing. The stops must not look like the end of the data
 (a stream heard from last ``silent_after`` seconds ago is taken for quiet, and
 ``flush_after`` seconds without data for the end of the stream), so the nodes run with
-``silent_after`` at :data:`QUIET` seconds, the estimator's end is asked for (``~/solve``)
-and the triangulation node's waited for (:data:`TRI_FLUSH`); the clean replay (no class)
-runs the same way and is the reference.
+``silent_after`` and ``flush_after`` at :data:`QUIET` seconds and their ends are asked for
+(the services above); the clean replay (no class) runs the same way and is the reference.
 
 Which keys of a status are rejection counters, and which are symptoms, is
 :mod:`~orbit_tracking.tools.bench.fault_monitor`'s to say; the run records them by name.
@@ -71,7 +71,6 @@ __all__ = [
     'QUIET',
     'SETTLE_S',
     'STOP_S',
-    'TRI_FLUSH',
     'Phase',
     'ReplayRun',
     'Segment',
@@ -83,16 +82,11 @@ DEFAULT_BAG = Path(__file__).resolve().parents[3] / 'test' / 'data' / 'bags' / '
 """30 s of seed000_s1 (13 stations and telemetry; see test/data/README.md)."""
 
 QUIET = 60.0
-"""``silent_after`` of the processing nodes and the estimator's ``flush_after`` [s]: longer
-than any stop of the replay."""
-
-TRI_FLUSH = 10.0
-"""The triangulation node's ``flush_after`` [s]: longer than a stop, and waited for at the
-end of the replay, when that node fixes what its lag still holds and counts what it could
-not use (it has no service to ask for it)."""
+"""``silent_after`` and ``flush_after`` of the processing nodes [s]: longer than any stop of
+the replay."""
 
 OVERRIDES: dict[str, dict[str, object]] = {
-    'triangulation': {'silent_after': QUIET, 'flush_after': TRI_FLUSH},
+    'triangulation': {'silent_after': QUIET, 'flush_after': QUIET},
     'estimator': {
         'window_length': 12.0,  # four windows over the bag, as test_regression_bags
         'window_overlap': 4.0,
@@ -268,7 +262,6 @@ class _Replay:
         self.latest: dict[str, bytes] = {}
         self.station_sent = 0  # station measurement messages published (both participants)
         self.telemetry_sent = 0  # telemetry messages published (both participants)
-        self.last_sent = time.monotonic()  # when the last message was published
         self.injected_windows = 0
         self.snapshot: dict[str, Tick] = {}
         self.log_marks: dict[str, int] = {}  # log bytes already scanned for tracebacks
@@ -409,7 +402,6 @@ class _Replay:
             if wait > 0.0005:
                 time.sleep(wait)
             ros.pubs[m.topic].publish(m.raw)
-            self.last_sent = time.monotonic()
             self.latest[m.topic] = m.raw
             self.station_sent += m.measurement
             self.telemetry_sent += m.topic == TELEMETRY
@@ -446,7 +438,6 @@ class _Replay:
         sent_at = time.time()
         for inj in msgs:
             ros.bad_pubs[inj.topic].publish(inj.msg)
-        self.last_sent = time.monotonic()
         try:
             self.snapshot = self.settle(ros, sent_at, counted=counted)
         finally:
@@ -481,6 +472,7 @@ class _Replay:
                 and ros.node.count_publishers('/trajectory/states') >= 1
                 and ros.solve.service_is_ready()
                 and ros.flush.service_is_ready()
+                and ros.tri_flush.service_is_ready()
             )
 
         self.wait('the nodes to come up and read every topic', ready, 90.0)
@@ -517,8 +509,10 @@ class _Replay:
                 return ros.state_msgs >= flushed
 
         self.wait('the final trajectory/states', all_states, 30.0)
-        # the triangulation node's own end of stream
-        time.sleep(max(self.last_sent + TRI_FLUSH + 0.5 - time.monotonic(), 0.3))
+        # the triangulation node's own end of stream: it fixes what its lag holds and
+        # counts what it could not use
+        if ros.call(ros.tri_flush, 30.0) is None:
+            raise _Abort('the triangulation node did not answer ~/flush within 30 s (hung)')
         final.update(self.settle(ros, time.time(), ('triangulation',)))
         self.close_segment(final)
         for n, (rejections, symptoms) in _read(final).items():
