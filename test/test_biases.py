@@ -184,7 +184,9 @@ def test_a_bias_bounded_away_from_the_truth_stops_on_its_bound_and_says_so():
     sid, value = next((k[0], v) for k, v in truth.items() if k[1] == 'range' and v > 1.0)
     bound = 0.5 * value
     declared = (BiasParameter(sid, 'range', 0.0, 10.0, bounds=(-bound, bound)),)
-    est = estimate(obs, 0.0, 30.0, EstimatorConfig(biases=declared, refine_rounds=0))
+    est = estimate(
+        obs, 0.0, 30.0, EstimatorConfig(biases=declared, refine_rounds=0, retry=False)
+    )
     (b,) = est.biases
     assert b.value == pytest.approx(bound)
     assert b.status.startswith('estimated, at its upper bound'), b.status

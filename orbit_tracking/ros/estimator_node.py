@@ -74,7 +74,7 @@ from orbit_tracking.ros.conversions import (
 )
 from orbit_tracking.ros.estimator_outputs import WindowOutputs
 from orbit_tracking.ros.journal import EstimatorJournal
-from orbit_tracking.ros.parameters import declare
+from orbit_tracking.ros.parameters import declare, diagnostics_timer
 from orbit_tracking.ros.runner import run_node
 from orbit_tracking.ros.solve_worker import SolveWorker
 from orbit_tracking.ros.station_inputs import StationInputs
@@ -557,7 +557,7 @@ class EstimatorNode(WindowOutputs, StationInputs):
             ),
         )
         self.create_timer(0.2, lambda: self._guarded('tick', self._tick))
-        self.create_timer(1.0, self._publish_diagnostics)
+        diagnostics_timer(self, self._publish_diagnostics)
         self.get_logger().info(
             f'estimating in {win.length:g} s windows overlapping {win.overlap:g} s '
             f'(latency {win.latency:g} s, knots {knot_method}) from {self._stations_text()}'

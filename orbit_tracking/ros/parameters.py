@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 from rcl_interfaces.msg import (
@@ -12,7 +13,7 @@ from rcl_interfaces.msg import (
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-__all__ = ['declare']
+__all__ = ['declare', 'diagnostics_timer']
 
 
 def declare(
@@ -60,3 +61,21 @@ def declare(
         value = node.get_parameter_or(name, Parameter(name, param_type, default)).value
         return default if value is None else value
     return node.declare_parameter(name, default, desc).value
+
+
+def diagnostics_timer(node: Node, publish: Callable[[], None]) -> float:
+    """Declare ``diagnostics_period`` and publish the node's ``/diagnostics`` status at that
+    period; the period [s]."""
+    period = float(
+        declare(
+            node,
+            'diagnostics_period',
+            1.0,
+            'Wall seconds between two /diagnostics statuses of the node.',
+            read_only=True,
+            min_value=0.05,
+            max_value=60.0,
+        )
+    )
+    node.create_timer(period, publish)
+    return period

@@ -76,7 +76,7 @@ from orbit_tracking.ros.conversions import (
     target_state_to_odometry,
 )
 from orbit_tracking.ros.guard import guarded
-from orbit_tracking.ros.parameters import declare
+from orbit_tracking.ros.parameters import declare, diagnostics_timer
 from orbit_tracking.ros.results_journal import ResultsJournal
 from orbit_tracking.ros.runner import run_node
 
@@ -262,7 +262,7 @@ class ResultsNode(Node):
         self.hold_until = 0.0
         if self.journal.enabled:  # marks what readers acknowledged (a restart resends the rest)
             self.create_timer(0.05, self._journal_tick)
-        self.create_timer(1.0, self._publish_diagnostics)
+        diagnostics_timer(self, self._publish_diagnostics)
         where = "the windows' world frame"
         if self.launch is not None:
             where = f'the launch frame ({self.launch[2]})'

@@ -38,7 +38,7 @@ from orbit_tracking.ros.conversions import (
     diagnostic_status,
     fix_to_msg,
 )
-from orbit_tracking.ros.parameters import declare
+from orbit_tracking.ros.parameters import declare, diagnostics_timer
 from orbit_tracking.ros.runner import run_node
 from orbit_tracking.ros.station_inputs import StationInputs
 
@@ -172,7 +172,7 @@ class TriangulationNode(StationInputs):
         self.last_data = time.monotonic()
         self.flushed = True
         self._start_station_inputs(station_filter, self.time_reference)
-        self.create_timer(1.0, self._publish_diagnostics)
+        diagnostics_timer(self, self._publish_diagnostics)
         self.create_timer(0.2, lambda: self._guarded('flush', self._flush_if_idle))
         self.create_service(Trigger, '~/flush', self._on_flush)
         self.get_logger().info(f'triangulating {self._stations_text()}')

@@ -52,6 +52,7 @@ NODE_ONLY_PARAMETERS = frozenset(
         'journal_dir',
         'journal_max_mb',
         'window_history',
+        'diagnostics_period',
         # relative to the live node's time_reference, which a bag does not carry
         'segments',
         # chosen by the caller: ``estimate --model`` runs a whole-bag fit instead

@@ -68,6 +68,7 @@ from orbit_tracking.tools.live import log_tail
 __all__ = [
     'DEFAULT_BAG',
     'OVERRIDES',
+    'DIAGNOSTICS_PERIOD',
     'QUIET',
     'SETTLE_S',
     'STOP_S',
@@ -85,17 +86,21 @@ QUIET = 60.0
 """``silent_after`` and ``flush_after`` of the processing nodes [s]: longer than any stop of
 the replay."""
 
+DIAGNOSTICS_PERIOD = 0.25
+"""The nodes' ``diagnostics_period`` [s]: a phase waits for a status of every node that
+shows its messages taken (at the default 1 s, a phase took 1.3 s)."""
+
+_QUIET = {'silent_after': QUIET, 'flush_after': QUIET, 'diagnostics_period': DIAGNOSTICS_PERIOD}
 OVERRIDES: dict[str, dict[str, object]] = {
-    'triangulation': {'silent_after': QUIET, 'flush_after': QUIET},
+    'triangulation': dict(_QUIET),
     'estimator': {
         'window_length': 12.0,  # four windows over the bag, as test_regression_bags
         'window_overlap': 4.0,
         'latency': 2.0,
         'output_step': 0.1,
-        'silent_after': QUIET,
-        'flush_after': QUIET,
+        **_QUIET,
     },
-    'results': {'flush_after': 3600.0},
+    'results': {'flush_after': 3600.0, 'diagnostics_period': DIAGNOSTICS_PERIOD},
 }
 """Parameters set on top of each node's ``config/<node>.yaml``."""
 
