@@ -48,8 +48,10 @@ WINDOW_S = 12.0
 """How long the peers are watched once all of them are up (they publish at 10 Hz): long
 enough for a stranger whose handshake failed to try again (Fast DDS waits 5 s before it
 does)."""
-CONTROL_WINDOW_S = 8.0
-"""The controls only need the strangers to get in once."""
+CONTROL_WINDOW_S = 30.0
+"""The controls only need the strangers to get in once: they stop as soon as what they
+check was heard (8 s fixed was too short once under the test suite's load, where the
+stranger read within it but was not heard)."""
 PEER_LIFETIME_S = 120.0
 """A peer that is never told to stop exits after this long."""
 
@@ -347,10 +349,28 @@ class Peers:
                 pytest.fail(f'peer {label} does not listen on {port}: {proc.errors()[-2000:]}')  # type: ignore[attr-defined]
             time.sleep(0.1)
 
-    def finish(self, window_s: float) -> dict[str, Counter[str]]:
-        """Let the peers run until ``window_s`` after :meth:`wait_ready`, stop them; per peer,
-        how many messages it heard from each sender."""
-        time.sleep(max(0.0, self._watch_from + window_s - time.monotonic()))
+    def heard(self) -> dict[str, Counter[str]]:
+        """Per peer, how many messages it heard so far from each sender."""
+        return {
+            label: Counter(
+                line.split()[1]
+                for line in proc.output().splitlines()  # type: ignore[attr-defined]
+                if line.startswith('RX ')
+            )
+            for label, proc in self.procs.items()
+        }
+
+    def finish(
+        self,
+        window_s: float,
+        until: Callable[[dict[str, Counter[str]]], bool] | None = None,
+    ) -> dict[str, Counter[str]]:
+        """Let the peers run until ``window_s`` after :meth:`wait_ready` (or until ``until``
+        holds for what they heard), stop them; per peer, how many messages it heard from
+        each sender."""
+        end = self._watch_from + window_s
+        while time.monotonic() < end and not (until is not None and until(self.heard())):
+            time.sleep(0.5)
         for label, proc in self.procs.items():
             assert proc.poll() is None, f'peer {label} ended early: {proc.errors()[-2000:]}'  # type: ignore[attr-defined]
         self._stop.touch()
@@ -504,9 +524,13 @@ def test_control_peers_on_plain_tcp_let_strangers_in(peers: Peers, tmp_path: Pat
     for name, port in zip(strangers, ports, strict=False):
         peers.start(name, _stranger_profile(tmp_path, name, port, (talker, listener), None))
     peers.wait_ready()
-    heard = peers.finish(CONTROL_WINDOW_S)
-    read = sum(heard[s]['talker'] + heard[s]['listener'] for s in strangers)
-    injected = sum(heard[v][s] for v in ('talker', 'listener') for s in strangers)
+
+    def read_injected(heard: dict[str, Counter[str]]) -> tuple[int, int]:
+        read = sum(heard[s]['talker'] + heard[s]['listener'] for s in strangers)
+        return read, sum(heard[v][s] for v in ('talker', 'listener') for s in strangers)
+
+    heard = peers.finish(CONTROL_WINDOW_S, lambda h: min(read_injected(h)) > 0)
+    read, injected = read_injected(heard)
     assert read > 0 and injected > 0, f'without TLS, TCP strangers should read and inject: {heard}'
 
 
@@ -538,7 +562,10 @@ def test_control_the_tls_profile_alone_lets_strangers_in(peers: Peers, tmp_path:
         time.sleep(1.0)
         probes.append(probe_tls(HOST, port))
     assert probes[-1].accepted, f'without OPENSSL_CONF no client certificate is needed: {probes}'
-    heard = peers.finish(CONTROL_WINDOW_S)
+    heard = peers.finish(
+        CONTROL_WINDOW_S,
+        lambda h: min(h['nocert']['talker'], h['listener']['nocert'], h['default']['talker']) > 0,
+    )
     assert heard['nocert']['talker'] > 0 and heard['listener']['nocert'] > 0, (
         f'without OPENSSL_CONF a TLS client without certificate reads and injects: {heard}'
     )

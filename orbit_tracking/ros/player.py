@@ -31,7 +31,7 @@ from rosgraph_msgs.msg import Clock
 
 from orbit_tracking.ros import qos
 from orbit_tracking.ros.bag import message_class
-from orbit_tracking.ros.runner import ready_to_stream
+from orbit_tracking.ros.runner import StreamGate
 
 __all__ = ['BagPlayerNode']
 
@@ -150,7 +150,7 @@ class BagPlayerNode(Node):
         self.wait_for_subscribers = wait_for_subscribers
         self.wait_timeout = wait_timeout
         self.start_delay = start_delay
-        self._created = time.monotonic()
+        self._gate = StreamGate(self.start_delay, self.wait_for_subscribers, self.wait_timeout)
         self._t0_wall: float | None = None
         self.get_logger().info(
             f'playing {len(conns)} topic(s) of {bag} at {rate:g}x '
@@ -162,13 +162,7 @@ class BagPlayerNode(Node):
 
     def _ready(self, now: float) -> bool:
         pubs = [p for cid, p in self.pubs.items() if cid not in self.latched]
-        return ready_to_stream(
-            now - self._created,
-            self.start_delay,
-            self.wait_for_subscribers,
-            self.wait_timeout,
-            pubs,
-        )
+        return self._gate.ready(now, pubs)
 
     def _tick(self) -> None:
         now = time.monotonic()

@@ -30,7 +30,7 @@ from rclpy.signals import SignalHandlerOptions
 
 from orbit_tracking.core.errors import OrbitTrackingError
 
-__all__ = ['StopRequest', 'context_goes_down', 'ready_to_stream', 'run_node']
+__all__ = ['MATCH_SETTLE_S', 'StopRequest', 'StreamGate', 'context_goes_down', 'run_node']
 
 SHUTDOWN_GRACE_S = 2.0
 """How long a RuntimeError out of the spin waits for a shutdown from elsewhere to show."""
@@ -171,18 +171,34 @@ def run_node(factory: Callable[[], Node], args: list[str] | None = None) -> None
             sys.exit(code)
 
 
-def ready_to_stream(
-    elapsed: float,
-    start_delay: float,
-    wait_for_subscribers: int,
-    wait_timeout: float,
-    publishers: Iterable[Publisher],
-) -> bool:
-    """Whether a streaming node (simulator, bag player) may start: ``start_delay`` wall
-    seconds have passed since it was created and every one of ``publishers`` has at least
-    ``wait_for_subscribers`` readers, or ``wait_timeout`` more seconds have passed."""
-    if elapsed < start_delay:
-        return False
-    if wait_for_subscribers <= 0 or elapsed >= start_delay + wait_timeout:
-        return True
-    return all(p.get_subscription_count() >= wait_for_subscribers for p in publishers)
+MATCH_SETTLE_S = 0.5
+"""Wall seconds every publisher must have had its readers before a stream starts. A writer
+matches a reader before the reader has matched the writer, and a volatile reader drops what
+comes before that (seen: the first messages of a 10x simulation lost to a test's reader)."""
+
+
+class StreamGate:
+    """When a streaming node (simulator, bag player) may start: ``start_delay`` wall
+    seconds after it was created and once every publisher has had at least
+    ``wait_for_subscribers`` readers for :data:`MATCH_SETTLE_S`, or ``wait_timeout`` more
+    seconds have passed."""
+
+    def __init__(self, start_delay: float, wait_for_subscribers: int, wait_timeout: float):
+        self.start_delay = start_delay
+        self.wait_for_subscribers = wait_for_subscribers
+        self.wait_timeout = wait_timeout
+        self.created = time.monotonic()
+        self._matched: float | None = None
+
+    def ready(self, now: float, publishers: Iterable[Publisher]) -> bool:
+        elapsed = now - self.created
+        if elapsed < self.start_delay:
+            return False
+        if self.wait_for_subscribers <= 0 or elapsed >= self.start_delay + self.wait_timeout:
+            return True
+        if not all(p.get_subscription_count() >= self.wait_for_subscribers for p in publishers):
+            self._matched = None
+            return False
+        if self._matched is None:
+            self._matched = now
+        return now - self._matched >= MATCH_SETTLE_S

@@ -32,7 +32,7 @@ from orbit_tracking.ros import qos
 from orbit_tracking.ros.conversions import TimeBase, diagnostic_array, diagnostic_status
 from orbit_tracking.ros.messages import event_message
 from orbit_tracking.ros.parameters import declare
-from orbit_tracking.ros.runner import ready_to_stream
+from orbit_tracking.ros.runner import StreamGate
 
 __all__ = ['SimulatorNode']
 
@@ -212,7 +212,7 @@ class SimulatorNode(Node):
         )
         self.diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', qos.DIAGNOSTICS)
         self.sent = dict.fromkeys(ids, 0)
-        self._created = time.monotonic()
+        self._gate = StreamGate(self.start_delay, self.wait_for_subscribers, self.wait_timeout)
         self._start_wall: float | None = None
         self._last_diag = 0.0
         self.timer = self.create_timer(0.005, self._tick)
@@ -225,13 +225,7 @@ class SimulatorNode(Node):
             for sid in self.meas_pubs
             if self.result.station_states[sid].moving
         ]
-        return ready_to_stream(
-            now - self._created,
-            self.start_delay,
-            self.wait_for_subscribers,
-            self.wait_timeout,
-            pubs,
-        )
+        return self._gate.ready(now, pubs)
 
     def _tick(self) -> None:
         now = time.monotonic()
