@@ -374,7 +374,6 @@ class Peers:
         for label, proc in self.procs.items():
             assert proc.poll() is None, f'peer {label} ended early: {proc.errors()[-2000:]}'  # type: ignore[attr-defined]
         self._stop.touch()
-        heard: dict[str, Counter[str]] = {}
         for label, proc in self.procs.items():
             try:
                 proc.wait(timeout=20)
@@ -389,10 +388,7 @@ class Peers:
                 assert proc.returncode == 0, f'{label}: {proc.errors()[-2000:]}'  # type: ignore[attr-defined]
             out = proc.output()  # type: ignore[attr-defined]
             assert 'SENT' in out, f'{label}: {proc.errors()[-2000:]}'  # type: ignore[attr-defined]
-            heard[label] = Counter(
-                line.split()[1] for line in out.splitlines() if line.startswith('RX ')
-            )
-        return heard
+        return self.heard()
 
 
 @pytest.fixture
