@@ -147,10 +147,7 @@ class BagPlayerNode(Node):
         self.clock_pub = self.create_publisher(Clock, '/clock', qos.CLOCK) if clock else None
         self._clock_ns: int | None = None
         self._last_stamped: tuple[int, int] | None = None  # (log ns, stamp ns)
-        self.wait_for_subscribers = wait_for_subscribers
-        self.wait_timeout = wait_timeout
-        self.start_delay = start_delay
-        self._gate = StreamGate(self.start_delay, self.wait_for_subscribers, self.wait_timeout)
+        self._gate = StreamGate(start_delay, wait_for_subscribers, wait_timeout)
         self._t0_wall: float | None = None
         self.get_logger().info(
             f'playing {len(conns)} topic(s) of {bag} at {rate:g}x '

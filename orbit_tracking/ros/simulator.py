@@ -123,7 +123,7 @@ class SimulatorNode(Node):
             read_only=True,
             min_value=0.0,
         )
-        self.start_delay = declare(
+        start_delay = declare(
             self,
             'start_delay',
             0.5,
@@ -131,7 +131,7 @@ class SimulatorNode(Node):
             min_value=0.0,
             max_value=3600.0,
         )
-        self.wait_for_subscribers = declare(
+        wait_for_subscribers = declare(
             self,
             'wait_for_subscribers',
             0,
@@ -140,7 +140,7 @@ class SimulatorNode(Node):
             min_value=0,
             max_value=100,
         )
-        self.wait_timeout = declare(
+        wait_timeout = declare(
             self,
             'wait_timeout',
             30.0,
@@ -212,7 +212,7 @@ class SimulatorNode(Node):
         )
         self.diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', qos.DIAGNOSTICS)
         self.sent = dict.fromkeys(ids, 0)
-        self._gate = StreamGate(self.start_delay, self.wait_for_subscribers, self.wait_timeout)
+        self._gate = StreamGate(start_delay, wait_for_subscribers, wait_timeout)
         self._start_wall: float | None = None
         self._last_diag = 0.0
         self.timer = self.create_timer(0.005, self._tick)

@@ -170,7 +170,7 @@ def give_up_early(
     previous: Mapping[int, TargetSolution] | None,
     more_after: bool,
 ) -> None:
-    """Raise :class:`~orbit_tracking.core.estimation.retries.EdgeNotSettled` when the first
+    """Raise :class:`EdgeNotSettled` when the first
     solve did not settle (not converged, and beyond ``max_unconverged_decrement``) and an
     incomplete segment without telemetry lies at a window edge where another window covers
     it: at the start, a ``previous`` window reaching past the segment's end; at the end,
@@ -179,7 +179,7 @@ def give_up_early(
     23 s, then failed). A segment with telemetry in it is anchored by it (draw 1028: such a
     window, cut, lost the leverage of its last 18 s on the telemetry's error and its error
     outside the segment grew from 0.79 to 1.22 times the bound). The span to solve instead
-    is :func:`~orbit_tracking.core.estimation.retries.cut_span`'s."""
+    is :func:`cut_span`'s."""
     if out.converged or not out.decrement > cfg.max_unconverged_decrement:
         return
     segs = []
