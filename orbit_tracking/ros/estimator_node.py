@@ -402,6 +402,18 @@ class EstimatorNode(WindowOutputs, StationInputs):
                 min_value=0.0,
                 max_value=1e6,
             ),
+            weak_manoeuvre_gain=declare(
+                self,
+                'weak_manoeuvre_gain',
+                1.0,
+                'Gain [s] of the same consider term around weak changes (a jerk jump j in the '
+                "telemetry too small for an event: a gentle turn ramp's end): density "
+                'gain * j^2 [m^2/s^5] across event_manoeuvre_half_width either side. The '
+                'estimate does not change. 0 = off.',
+                read_only=True,
+                min_value=0.0,
+                max_value=1e3,
+            ),
             refine_rounds=declare(
                 self,
                 'refine_rounds',

@@ -217,6 +217,11 @@ class EstimatorConfig:
         telemetry (the rough trajectory whose events make knots) has no samples, widened
         by ``knots.event_window``: a turn or a staging inside a telemetry outage has no
         event found, no knots at its instants and none of the term above. 0 = off.
+    weak_manoeuvre_gain : float
+        Gain [s] of the same consider term across ``weak +- event_manoeuvre_half_width``
+        around every weak change (a jerk jump ``j`` too small for an event,
+        :attr:`~orbit_tracking.core.estimation.events.Changes.weak`): density
+        ``gain * j^2`` [m^2/s^5]. 0 = off.
     gm : float
         Gravitational parameter [m^3/s^2] of that constraint.
     segments : tuple of (start, end)
@@ -269,6 +274,7 @@ class EstimatorConfig:
     event_manoeuvre_density: float = 30.0
     event_manoeuvre_half_width: float = 3.0
     unseen_manoeuvre_density: float = 10.0
+    weak_manoeuvre_gain: float = 1.0
     gm: float = 3.986005e14
     segments: tuple[Segment, ...] = ()
     detect_segments: bool = True
@@ -323,6 +329,10 @@ class EstimatorConfig:
             raise ValueError(
                 f'unseen_manoeuvre_density must lie in [0, 1e6] m^2/s^5; got '
                 f'{self.unseen_manoeuvre_density}'
+            )
+        if not 0.0 <= self.weak_manoeuvre_gain <= 1e3:
+            raise ValueError(
+                f'weak_manoeuvre_gain must lie in [0, 1e3] s; got {self.weak_manoeuvre_gain}'
             )
         if not 0.05 <= self.event_manoeuvre_half_width <= 30.0:
             raise ValueError(

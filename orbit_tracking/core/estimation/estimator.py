@@ -130,16 +130,24 @@ def _gap_manoeuvres(
     cfg: EstimatorConfig,
     scale: float,
     unseen: tuple[Segment, ...] = (),
+    weak: tuple[tuple[float, float], ...] = (),
 ) -> GapManoeuvres | None:
     """The consider term of the manoeuvres target ``tid``'s incomplete segments and the
-    ``unseen`` spans of its telemetry may hide and of the detail its ``events`` leave
-    unmodelled (None when none applies)."""
+    ``unseen`` spans of its telemetry may hide and of the detail its ``events`` and
+    ``weak`` changes ``(time, jerk jump)`` leave unmodelled (None when none applies)."""
     traj = prob.trajs[tid]
     spans = event_spans(events, cfg.event_manoeuvre_half_width, traj.t0, traj.t1)
+    weak_spans = tuple(
+        (span, cfg.weak_manoeuvre_gain * jump**2)
+        for w, jump in weak
+        for span in event_spans((w,), cfg.event_manoeuvre_half_width, traj.t0, traj.t1)
+        if cfg.weak_manoeuvre_gain > 0.0 and jump > 0.0
+    )
     if jac is None or not (
         (segs and cfg.gap_manoeuvre_density > 0.0)
         or (spans and cfg.event_manoeuvre_density > 0.0)
         or (unseen and cfg.unseen_manoeuvre_density > 0.0)
+        or weak_spans
     ):
         return None
     return gap_manoeuvres(
@@ -157,6 +165,7 @@ def _gap_manoeuvres(
         cfg.event_manoeuvre_density,
         unseen,
         cfg.unseen_manoeuvre_density,
+        weak_spans,
     )
 
 
@@ -377,6 +386,7 @@ def _estimate_once(
             selections[tid] = replace(
                 sel2,
                 rough_source='fixes, then first solution',
+                weak=selections[tid].weak,
                 doubtful=tuple(
                     sorted({*selections[tid].doubtful, *(e for e in from_first if t0 < e < t1)})
                 ),
@@ -564,6 +574,7 @@ def _estimate_once(
             cfg,
             verdict.covariance_scale,
             _unseen(obs, tid, t0, t1, cfg),
+            selections[tid].weak,
         )
         for tid in selections
     }
@@ -665,8 +676,9 @@ def _estimate_once(
         f'; target {tid} events: {len(k.events) - len(k.kinks)} acceleration jumps, '
         f'{len(k.kinks)} ramp ends or bends'
         + (f', {len(k.doubtful)} doubtful (no knots)' if k.doubtful else '')
+        + (f', {len(k.weak)} weak (no knots)' if k.weak else '')
         for tid, k in sorted((tid, ts.knots) for tid, ts in targets.items())
-        if k.events or k.doubtful
+        if k.events or k.doubtful or k.weak
     )
     msg += ''.join(
         f'; target {tid} white-jerk prior {q:.3g} m^2/s^5' + (' near events' if near else '')

@@ -38,6 +38,11 @@ the 35 aircraft draws of the robustness families had a fifth of those states.
    telemetry of 0.2 m/s noise a turn ramp's end is found about as often as it is only
    doubtful, and the states beside an unknotted end were off by tenths of a metre per
    second at centimetres of sigma.
+6. **Weak changes**: the strongest sample of every run where the jerk's statistic, without
+   its floor and above what a steady turn gives (:data:`TURN_MARGIN`), exceeds
+   :data:`JERK_DOUBT` noise sigmas out of reach of all of the above, with the jerk's jump
+   there: a gentle turn ramp's end. No knots; a consider term sized by the jump
+   (``weak_manoeuvre_gain``).
 """
 
 from __future__ import annotations
@@ -64,6 +69,23 @@ KINK_FLOOR = 2.5
 acceleration turns with the velocity, and quadratic fits a few seconds apart (at 1 Hz)
 differ by 2-3 m/s^3 without any kink; the turn ramps of the aircraft draws are 7-15."""
 
+JERK_DOUBT = 2.5
+"""Noise sigmas of the jerk's statistic (no floor) above which a run out of reach of the
+changes and doubts found marks a weak change (:attr:`Changes.weak`). Aircraft leaving a
+gentle turn (1.9-2.8 m/s^2 over 1.2-1.4 s) showed 4-8 sigmas there, below the 10-sigma
+threshold, and the states beside them were off by 0.1-0.2 m/s at 0.03-0.06 m/s sigmas."""
+
+WHITE_MEDIAN = float(np.sqrt(2.366 / 3.0))
+"""Median of the jerk's statistic in noise sigmas for white velocity noise (the root of a
+chi-square of 3 degrees of freedom over 3). Separate-velocity telemetry of the ascent draws
+(errors correlated over seconds) ran at twice that, and marked a weak change every two
+seconds; its statistic is taken in units of its median when that is higher."""
+
+TURN_MARGIN = 2.0
+"""The weak changes' statistic is counted above this many times a steady turn's own jerk
+change (aircraft draw 1005's 2.5 g turns: 0.4-0.7 m/s^3 in 5 Hz GPS at 0.03 m/s, marks all
+along the turn, which doubled the velocity sigmas where the spline followed the turn)."""
+
 DOUBT = 0.5
 """Share of its threshold above which the acceleration's statistic marks a doubtful
 change (the threshold is at least ``event_sigma`` noise sigmas, 10 by default: half of it
@@ -84,6 +106,11 @@ class Changes:
     """Where a change may be but none was found: the acceleration's statistic above
     :data:`DOUBT` of its threshold away from the changes found, or a candidate that fitted
     no change (no knots there; the covariance's consider term around events covers them)."""
+    weak: tuple[tuple[float, float], ...] = ()
+    """``(time, jerk jump [m/s^3])`` where the jerk's statistic, without its floor, exceeds
+    :data:`JERK_DOUBT` noise sigmas out of reach of every change and doubt above (the
+    strongest sample of each run): a gentle ramp's end the thresholds let pass. No knots;
+    the covariance's consider term around it is sized by the jump."""
 
     @property
     def times(self) -> list[float]:
@@ -129,7 +156,7 @@ def find_changes(
     seen = (np.zeros(n, dtype=bool), np.zeros(n, dtype=bool))
     # acceleration jumps first (and what they turn out to be), then the kinks left over:
     # the jerk's statistic also peaks half a window from a jump, and between two jumps
-    scores = _scores(t, v, k, dt, noise, min_jump, sigma, window)
+    *scores, jerk_sigmas, jerk_jump = _scores(t, v, k, dt, noise, min_jump, sigma, window)
     for p, score in enumerate(scores):
         taken = seen[p]
         above = (score > 1.0) & ~taken
@@ -184,11 +211,29 @@ def find_changes(
     near = np.zeros(n, dtype=bool)
     for e in found:
         near |= np.abs(t - e) <= 2.0 * reach
-    weak = np.flatnonzero((score > DOUBT) & ~near)
-    if weak.size:
-        runs = np.split(weak, np.flatnonzero(np.diff(weak) > 1) + 1)
+    above_doubt = np.flatnonzero((score > DOUBT) & ~near)
+    if above_doubt.size:
+        runs = np.split(above_doubt, np.flatnonzero(np.diff(above_doubt) > 1) + 1)
         doubtful.extend(float(t[r[np.argmax(score[r])]]) for r in runs)
-    return Changes(tuple(sorted(jumps)), tuple(sorted(kinks)), tuple(sorted(set(doubtful))))
+    # the jerk's statistic without its floor, out of the jerk's reach of all of those
+    near = np.zeros(n, dtype=bool)
+    for e in (*jumps, *kinks, *doubtful):
+        near |= np.abs(t - e) <= 2.0 * reach
+    # velocity errors that are not white (a separate velocity source, an INS) leave the
+    # noise level too low and the statistic high everywhere: counted in units of its own
+    # median where it is that of white noise or above
+    quiet = (jerk_jump > 0.0) & ~near
+    if np.count_nonzero(quiet) >= 20:
+        jerk_sigmas = jerk_sigmas / max(1.0, float(np.median(jerk_sigmas[quiet])) / WHITE_MEDIAN)
+    weak_runs = np.flatnonzero((jerk_sigmas > JERK_DOUBT) & ~near)
+    weak: list[tuple[float, float]] = []
+    if weak_runs.size:
+        for wr in np.split(weak_runs, np.flatnonzero(np.diff(weak_runs) > 1) + 1):
+            top = int(wr[np.argmax(jerk_sigmas[wr])])
+            weak.append((float(t[top]), float(jerk_jump[top])))
+    return Changes(
+        tuple(sorted(jumps)), tuple(sorted(kinks)), tuple(sorted(set(doubtful))), tuple(weak)
+    )
 
 
 def _scores(
@@ -200,13 +245,12 @@ def _scores(
     min_jump: float,
     sigma: float,
     window: float,
-) -> tuple[FloatArray, FloatArray]:
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """At every sample, the jumps of acceleration and of jerk between quadratic fits to
     the ``k`` samples on each side (``2 k`` for the jerk, which needs the longer lever),
     each over its threshold (``min_jump`` [m/s^2] or :data:`KINK_FLOOR` ``min_jump / window``
-    [m/s^3], and
-    ``sigma`` times its noise); 0 where the windows do not fit, or reach across a hole in
-    the sampling."""
+    [m/s^3], and ``sigma`` times its noise); then the jerk's jump in noise sigmas and in
+    m/s^3. All 0 where the windows do not fit, or reach across a hole in the sampling."""
     n = t.size
     holes = np.concatenate([[0], np.cumsum(np.diff(t) > 1.5 * dt)])  # holes before each
     out = []
@@ -226,18 +270,26 @@ def _scores(
         jump = np.linalg.norm(d_r - d_l, axis=1)
         sig = noise * float(np.sqrt(w_left @ w_left))
         threshold = max(floor, sigma * np.sqrt(2.0) * sig * np.sqrt(3))
-        score = np.nan_to_num(jump / threshold)
-        score[:kk] = 0.0
-        score[n - kk :] = 0.0
+        jump = np.nan_to_num(jump)
+        jump[:kk] = 0.0
+        jump[n - kk :] = 0.0
         # the fits take the samples as evenly spaced: a sample whose windows reach across
         # a hole (a telemetry outage, a dropout) compares fits over the wrong times, and
         # the outage's edges came out as events (spurious acceleration jumps that freed
         # the spline across the outage from the jerk prior). No event is claimed there;
         # the measurements' knot test can still find one.
         i = np.arange(kk, n - kk)
-        score[i[holes[i + kk] != holes[i - kk]]] = 0.0
-        out.append(score)
-    return out[0], out[1]
+        jump[i[holes[i + kk] != holes[i - kk]]] = 0.0
+        out.append(jump / threshold)
+        if row == 1:
+            acc = np.nan_to_num(0.5 * np.linalg.norm(d_l + d_r, axis=1))
+        else:
+            # a steady turn's acceleration turns with the velocity, and the jerk with it:
+            # its fits a lever apart differ by |d3v/dt3| * lever = |a|^3 / |v|^2 * lever
+            speed2 = np.maximum(np.sum(v * v, axis=1), 1e-12)
+            excess = np.maximum(jump - TURN_MARGIN * acc**3 / speed2 * kk * dt, 0.0)
+            out.extend((excess / (np.sqrt(6.0) * sig) if sig > 0.0 else 0.0 * jump, jump))
+    return out[0], out[1], out[2], out[3]
 
 
 def _sse(vs: FloatArray, base: FloatArray, extra: FloatArray) -> float:

@@ -92,6 +92,8 @@ class GapManoeuvres:
     event_spans: int = 0
     unseen_density: float = 0.0
     unseen_spans: int = 0
+    weak_densities: tuple[float, ...] = ()
+    """The densities of the spans around weak changes, one each."""
 
     @property
     def note(self) -> str:
@@ -108,6 +110,11 @@ class GapManoeuvres:
             parts.append(
                 f'{self.unseen_spans} spans where the rough trajectory had no samples may hide '
                 f'({self.unseen_density:.3g} m^2/s^5)'
+            )
+        if self.weak_densities:
+            parts.append(
+                f'{len(self.weak_densities)} spans around weak changes leave unmodelled '
+                f'({min(self.weak_densities):.3g}-{max(self.weak_densities):.3g} m^2/s^5)'
             )
         return ' and '.join(parts) + f' ({self.taus.size} acceleration steps)'
 
@@ -178,12 +185,14 @@ def gap_manoeuvres(
     event_density: float = 0.0,
     unseen: tuple[Segment, ...] = (),
     unseen_density: float = 0.0,
+    weak: tuple[tuple[Segment, float], ...] = (),
 ) -> GapManoeuvres | None:
     """The consider term of ``target``: acceleration steps every ``step`` seconds inside
     ``segments`` (:func:`instants`), each standing for its share of a white jerk of
     density ``density`` (prior variance ``density * width``), and likewise inside the
     spans ``events`` around detected events with density ``event_density`` and inside the
-    ``unseen`` spans (where the rough trajectory had no samples) with ``unseen_density``.
+    ``unseen`` spans (where the rough trajectory had no samples) with ``unseen_density``,
+    and each span of ``weak`` ``(span, density)`` (around weak changes) with its own.
 
     ``rows`` are the problem's per-row records (target, time, whitened d/d position and
     d/d velocity, telemetry flag) in the order of the rows of ``jac``; ``cov`` is
@@ -194,7 +203,12 @@ def gap_manoeuvres(
     """
     groups = [
         (tuple((float(a), float(b)) for a, b in spans if b > a), q)
-        for spans, q in ((segments, density), (events, event_density), (unseen, unseen_density))
+        for spans, q in (
+            (segments, density),
+            (events, event_density),
+            (unseen, unseen_density),
+            *(((span,), q) for span, q in weak),
+        )
         if q > 0.0
     ]
     parts = [(*instants(spans, step), q) for spans, q in groups if spans]
@@ -260,4 +274,5 @@ def gap_manoeuvres(
         event_spans=len(events) if event_density > 0.0 else 0,
         unseen_density=unseen_density if unseen and unseen_density > 0.0 else 0.0,
         unseen_spans=len(unseen) if unseen_density > 0.0 else 0,
+        weak_densities=tuple(q for _, q in weak if q > 0.0),
     )

@@ -710,6 +710,10 @@ class KnotSelection:
     """Where the rough trajectory may change its acceleration but no event was found
     (:attr:`~orbit_tracking.core.estimation.events.Changes.doubtful`): no knots, only the
     covariance's consider term."""
+    weak: tuple[tuple[float, float], ...] = ()
+    """``(time, jerk jump [m/s^3])`` of the rough trajectory's weak changes
+    (:attr:`~orbit_tracking.core.estimation.events.Changes.weak`): no knots, a consider
+    term sized by the jump."""
 
 
 def choose_knots(
@@ -744,10 +748,12 @@ def choose_knots(
     src, a0, a1 = context if context is not None else (rough, t0, t1)
     frame = frame or spline_frame(src)
     doubtful: tuple[float, ...] = ()
+    weak: tuple[tuple[float, float], ...] = ()
     if events is None:
         found = detect_changes(src, cfg) if cfg.events else Changes()
         events, kinks = found.times, found.kinks
         doubtful = tuple(e for e in found.doubtful if t0 < e < t1)
+        weak = tuple(w for w in found.weak if t0 < w[0] < t1)
     wide_events = [e for e in events if a0 + cfg.base_spacing / 2 < e < a1 - cfg.base_spacing / 2]
     events = [e for e in events if t0 + cfg.base_spacing / 2 < e < t1 - cfg.base_spacing / 2]
     solve = 0.0
@@ -816,6 +822,7 @@ def choose_knots(
         info,
         kinks=tuple(k for k in kinks if k in events),
         doubtful=doubtful,
+        weak=weak,
     )
 
 
