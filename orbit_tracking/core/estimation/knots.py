@@ -753,7 +753,8 @@ def choose_knots(
         found = detect_changes(src, cfg) if cfg.events else Changes()
         events, kinks = found.times, found.kinks
         doubtful = tuple(e for e in found.doubtful if t0 < e < t1)
-        weak = tuple(w for w in found.weak if t0 < w[0] < t1)
+        if src.source == 'telemetry':  # samples with their own noise, not a spline's
+            weak = tuple(w for w in found.weak if t0 < w[0] < t1)
     wide_events = [e for e in events if a0 + cfg.base_spacing / 2 < e < a1 - cfg.base_spacing / 2]
     events = [e for e in events if t0 + cfg.base_spacing / 2 < e < t1 - cfg.base_spacing / 2]
     solve = 0.0
