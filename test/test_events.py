@@ -230,3 +230,34 @@ def test_correlated_velocity_errors_give_no_weak_changes(rho, seed, monkeypatch)
     if rho > 0.0:  # the same samples, the statistic taken as it comes
         monkeypatch.setattr(events, 'WHITE_MEDIAN', np.inf)
         assert len(detect_changes(rough, KnotConfig()).weak) >= 3
+
+
+def _thrust(rng: np.random.Generator, t1: float) -> RoughTrajectory:
+    """10 Hz telemetry (0.01 m/s) of a vehicle climbing straight at 30 m/s^2 from 300 m/s,
+    whose acceleration starts to grow by 0.3 m/s^3 at ``t1`` (a throttle change, mass
+    burning off): a jerk jump far below the events' thresholds."""
+    t = np.arange(0.0, 40.0 + 1e-9, 0.1)
+    ramp = np.maximum(t - t1, 0.0)
+    speed = 300.0 + 30.0 * t + 0.15 * ramp**2
+    v = speed[:, None] * np.array([0.6, 0.0, 0.8]) + rng.standard_normal((t.size, 3)) * 0.01
+    p = np.cumsum(v, axis=0) * 0.1 + rng.standard_normal((t.size, 3))
+    return RoughTrajectory('telemetry', t, p, v, 1.0, 0.01)
+
+
+@pytest.mark.parametrize('seed', range(3))
+def test_a_jerk_jump_under_thrust_along_the_velocity_is_a_weak_change(seed):
+    """Only the acceleration normal to the velocity turns it: a thrust of 30 m/s^2 along a
+    velocity of 450 m/s turns nothing. Counted as a turn (the whole acceleration), its
+    a^3 / v^2 term hid the jump on each of these seeds; with the normal part the jump is
+    marked within 0.4 s and sized within 0.05 m/s^3 (measured), and steady thrust gives
+    nothing."""
+    rng = np.random.default_rng(seed)
+    t1 = 6.0 + rng.uniform(0.0, 1.0)
+    found = detect_changes(_thrust(rng, t1), KnotConfig())
+    assert found.times == []
+    assert len(found.weak) == 1
+    assert abs(found.weak[0][0] - t1) <= 0.5
+    assert abs(found.weak[0][1] - 0.3) <= 0.08
+    assert (
+        detect_changes(_thrust(np.random.default_rng(seed + 50), 1000.0), KnotConfig()).weak == ()
+    )

@@ -39,7 +39,8 @@ the 35 aircraft draws of the robustness families had a fifth of those states.
    doubtful, and the states beside an unknotted end were off by tenths of a metre per
    second at centimetres of sigma.
 6. **Weak changes**: the strongest sample of every run where the jerk's statistic, without
-   its floor and above what a steady turn gives (:data:`TURN_MARGIN`), exceeds
+   its floor and above what a steady turn of the same normal acceleration gives
+   (:data:`TURN_MARGIN`), exceeds
    :data:`JERK_DOUBT` noise sigmas out of reach of all of the above, with the jerk's jump
    there: a gentle turn ramp's end. No knots; a consider term sized by the jump
    (``weak_manoeuvre_gain``).
@@ -281,13 +282,16 @@ def _scores(
         i = np.arange(kk, n - kk)
         jump[i[holes[i + kk] != holes[i - kk]]] = 0.0
         out.append(jump / threshold)
+        speed2 = np.maximum(np.sum(v * v, axis=1), 1e-12)
         if row == 1:
-            acc = np.nan_to_num(0.5 * np.linalg.norm(d_l + d_r, axis=1))
+            # the acceleration normal to the velocity: what turns the velocity
+            acc = np.nan_to_num(0.5 * (d_l + d_r))
+            normal = np.linalg.norm(np.cross(acc, v), axis=1) / np.sqrt(speed2)
         else:
-            # a steady turn's acceleration turns with the velocity, and the jerk with it:
-            # its fits a lever apart differ by |d3v/dt3| * lever = |a|^3 / |v|^2 * lever
-            speed2 = np.maximum(np.sum(v * v, axis=1), 1e-12)
-            excess = np.maximum(jump - TURN_MARGIN * acc**3 / speed2 * kk * dt, 0.0)
+            # in a steady turn the normal acceleration turns with the velocity, and the jerk
+            # with it: fits a lever apart differ by |d3v/dt3| * lever = a_n^3 / |v|^2 * lever
+            # (a thrust along the velocity turns nothing)
+            excess = np.maximum(jump - TURN_MARGIN * normal**3 / speed2 * kk * dt, 0.0)
             out.extend((excess / (np.sqrt(6.0) * sig) if sig > 0.0 else 0.0 * jump, jump))
     return out[0], out[1], out[2], out[3]
 
