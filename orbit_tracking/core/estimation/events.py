@@ -48,7 +48,7 @@ the 35 aircraft draws of the robustness families had a fifth of those states.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -208,18 +208,13 @@ def find_changes(
     # the acceleration's statistic between DOUBT and its threshold, out of reach of the
     # changes found: the strongest sample of each run
     score = scores[0]
-    found = np.asarray(jumps + kinks)
-    near = np.zeros(n, dtype=bool)
-    for e in found:
-        near |= np.abs(t - e) <= 2.0 * reach
+    near = _within(t, (*jumps, *kinks), 2.0 * reach)
     above_doubt = np.flatnonzero((score > DOUBT) & ~near)
     if above_doubt.size:
         runs = np.split(above_doubt, np.flatnonzero(np.diff(above_doubt) > 1) + 1)
         doubtful.extend(float(t[r[np.argmax(score[r])]]) for r in runs)
     # the jerk's statistic without its floor, out of the jerk's reach of all of those
-    near = np.zeros(n, dtype=bool)
-    for e in (*jumps, *kinks, *doubtful):
-        near |= np.abs(t - e) <= 2.0 * reach
+    near = _within(t, (*jumps, *kinks, *doubtful), 2.0 * reach)
     # velocity errors that are not white (a separate velocity source, an INS) leave the
     # noise level too low and the statistic high everywhere: counted in units of its own
     # median where it is that of white noise or above
@@ -235,6 +230,14 @@ def find_changes(
     return Changes(
         tuple(sorted(jumps)), tuple(sorted(kinks)), tuple(sorted(set(doubtful))), tuple(weak)
     )
+
+
+def _within(t: FloatArray, times: Sequence[float], reach: float) -> NDArray[np.bool_]:
+    """The samples ``t`` within ``reach`` of any of ``times``."""
+    near = np.zeros(t.size, dtype=bool)
+    for e in times:
+        near |= np.abs(t - e) <= reach
+    return near
 
 
 def _scores(
@@ -256,6 +259,7 @@ def _scores(
     holes = np.concatenate([[0], np.cumsum(np.diff(t) > 1.5 * dt)])  # holes before each
     out = []
     k2 = min(2 * k, (n - 1) // 2)
+    speed2 = np.maximum(np.sum(v * v, axis=1), 1e-12)
     for row, kk, floor in ((1, k, min_jump), (2, k2, KINK_FLOOR * min_jump / window)):
         # quadratic fits on each side, differentiated at the candidate: a steady jerk
         # gives the same acceleration and jerk from both sides, a jump or a kink does not
@@ -282,7 +286,6 @@ def _scores(
         i = np.arange(kk, n - kk)
         jump[i[holes[i + kk] != holes[i - kk]]] = 0.0
         out.append(jump / threshold)
-        speed2 = np.maximum(np.sum(v * v, axis=1), 1e-12)
         if row == 1:
             # the acceleration normal to the velocity: what turns the velocity
             acc = np.nan_to_num(0.5 * (d_l + d_r))
