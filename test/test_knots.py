@@ -301,6 +301,21 @@ def test_find_incomplete_segments_recovers_the_seed000_gap_within_a_bin(name, bi
     np.testing.assert_allclose(segs[0], (45.0, 75.0), rtol=0.0, atol=bin_s + 1e-9)
 
 
+@pytest.mark.parametrize('name', ['seed000_s1', 'seed000_s2'])
+def test_find_incomplete_segments_finds_the_gap_from_a_rough_trajectory_held_past_its_samples(
+    name,
+):
+    # fixes stop where the gap starts: the rough trajectory holds its first state over
+    # the gap. Linearised there, every row of a bin sat at one position, and the gap's
+    # blind direction came out determined; on the bins' own motion it does not
+    world, obs = _seed000(name)
+    segs = find_incomplete_segments(
+        obs, 0, lambda t: world.target_state(0, np.clip(t, 75.0, None)), 40.0, 94.0
+    )
+    assert len(segs) == 1, segs
+    np.testing.assert_allclose(segs[0], (45.0, 75.0), rtol=0.0, atol=1.0 + 1e-9)
+
+
 def test_find_incomplete_segments_finds_nothing_where_every_station_measures():
     world, obs = _seed000('seed000_s1')
     segs = find_incomplete_segments(obs, 0, lambda t: world.target_state(0, t), 0.0, 40.0)

@@ -101,17 +101,25 @@ def find_incomplete_segments(
     nb = edges.size - 1
     info = np.zeros((nb, 6, 6))
     rows = np.zeros(nb, dtype=int)
+    mid = 0.5 * (edges[:-1] + edges[1:])
+    centre = np.asarray(state_at(mid), dtype=np.float64)
     for s in obs.stations:
         tab = s.table
         sel = (tab.target_id == target_id) & (tab.time >= t0) & (tab.time <= t1)
         if not np.any(sel):
             continue
         t = tab.time[sel]
-        x = np.asarray(state_at(t))
+        b = np.clip(np.searchsorted(edges, t, side='right') - 1, 0, nb - 1)
+        tau = (t - mid[b]) / cfg.bin
+        # linearised on the bin's own constant-velocity motion through its centre state:
+        # a rough trajectory held constant past its samples (fixes that stop where the
+        # segment starts) put every row of a bin at one position moving at speed, and two
+        # CW radars' blind direction (the whole path turned about their baseline changes
+        # no range and no range rate) came out determined to 65 m, like its neighbours
+        x = centre[b].copy()
+        x[:, :3] += (t - mid[b])[:, None] * x[:, 3:]
         _, jac = predict(tab.fields, x, s.pose.take(np.flatnonzero(sel)), jacobian=True)
         assert jac is not None
-        b = np.clip(np.searchsorted(edges, t, side='right') - 1, 0, nb - 1)
-        tau = (t - 0.5 * (edges[b] + edges[b + 1])) / cfg.bin
         valid = np.isfinite(tab.values[sel])
         w = np.where(valid, 1.0 / tab.sigmas[sel], 0.0)
         hp = jac[:, :, :3] * w[:, :, None]
