@@ -297,3 +297,40 @@ def test_robust_settings_are_validated():
     for bad in (0.0, -1.0, float('inf'), float('nan')):
         with pytest.raises(ValueError, match='robust_scale must be finite and > 0'):
             EstimatorConfig(robust_scale=bad)
+
+
+def test_the_check_sees_the_first_plain_outcome_and_can_end_the_solve_before_its_rounds():
+    """``solve``'s ``check`` (the estimator's early give-up at an unanchored edge segment)
+    is called once, with the first plain outcome, and changes nothing when it returns;
+    raising in it ends the solve before the noise re-estimation and gate rounds."""
+    cfg = EstimatorConfig()
+    axes = _estimate(None, cfg).targets[0].trajectory.axes
+
+    def fresh() -> tuple[Problem, np.ndarray]:
+        prob, _, coef0 = _problem_on(_observations().window(*WINDOW), axes, cfg)
+        beta0 = np.zeros(prob.n)
+        beta0[: coef0.size] = coef0
+        return prob, beta0
+
+    prob, beta0 = fresh()
+    plain, _, _ = solve(prob, beta0, cfg)
+    seen: list[GnOutcome] = []
+    prob, beta0 = fresh()
+    checked, _, _ = solve(prob, beta0, cfg, check=seen.append)
+    assert len(seen) == 1
+    np.testing.assert_array_equal(checked.beta, plain.beta)
+
+    class Stop(Exception):
+        pass
+
+    def stop(o: GnOutcome) -> None:
+        raise Stop
+
+    prob, beta0 = fresh()
+    noise = prob.telemetry[0].noise
+    with pytest.raises(Stop):
+        solve(prob, beta0, cfg, check=stop)
+    assert prob.telemetry[0].noise == noise  # not re-estimated: the rounds did not run
+    prob, beta0 = fresh()
+    solve(prob, beta0, cfg)
+    assert prob.telemetry[0].noise != noise

@@ -448,7 +448,11 @@ def robust_warm_up(
 
 
 def solve(
-    prob: Problem, beta: FloatArray, cfg: EstimatorConfig, warm_up: bool = True
+    prob: Problem,
+    beta: FloatArray,
+    cfg: EstimatorConfig,
+    warm_up: bool = True,
+    check: Callable[[GnOutcome], None] | None = None,
 ) -> tuple[GnOutcome, int, int]:
     """Gauss-Newton, then telemetry noise re-estimation and residual gating, repeated
     until neither changes (at most ``gate_rounds`` times).
@@ -463,6 +467,10 @@ def solve(
     every row at full weight it was the plain solve already and is taken as such. Without
     ``warm_up`` (a problem that carries the gates of an earlier solve, e.g. on refined
     knots) the plain solve starts at once.
+
+    ``check`` is called with the first plain outcome, before the noise and gate rounds; it
+    may raise to end the solve there (the estimator's early give-up at an unanchored edge
+    segment: the rounds would crawl on for as long again).
     """
     iterations = halvings = 0
     out: GnOutcome | None = None
@@ -484,6 +492,8 @@ def solve(
         out = gauss_newton(prob, beta, cfg)
         iterations += out.iterations
         halvings += out.halvings
+    if check is not None:
+        check(out)
     for _ in range(max(cfg.gate_rounds, 1)):
         changed = False
         if cfg.estimate_telemetry_noise and prob.telemetry:
