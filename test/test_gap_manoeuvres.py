@@ -325,7 +325,7 @@ def test_the_outage_spans_reach_as_far_as_the_event_detector_is_blind() -> None:
     from orbit_tracking.core.data.observations import Observations
     from orbit_tracking.core.data.tables import TargetStates
     from orbit_tracking.core.estimation.config import EstimatorConfig
-    from orbit_tracking.core.estimation.estimator import _unseen
+    from orbit_tracking.core.estimation.gap_manoeuvres import unseen_spans
 
     def spans(rate: float) -> tuple[tuple[float, float], ...]:
         t = np.arange(0.0, 60.0 + 1e-9, 1.0 / rate)
@@ -334,7 +334,7 @@ def test_the_outage_spans_reach_as_far_as_the_event_detector_is_blind() -> None:
         z = np.zeros((n, 3))
         tel = TargetStates(0, t, z, z, np.ones(n), np.ones(n))
         obs = Observations(stations=(), telemetry={0: tel})
-        return _unseen(obs, 0, 0.0, 60.0, EstimatorConfig())
+        return unseen_spans(obs, 0, 0.0, 60.0, EstimatorConfig())
 
     ((a1, b1),) = spans(1.0)
     assert a1 == pytest.approx(19.0 - 3.0) and b1 == pytest.approx(31.0 + 3.0)

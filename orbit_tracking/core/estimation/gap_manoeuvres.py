@@ -57,6 +57,7 @@ itself: the cost grows with the rows plus the square of the instants, not their 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
@@ -64,9 +65,22 @@ from numpy.typing import NDArray
 
 from orbit_tracking.core.estimation.bspline import SplineTrajectory
 from orbit_tracking.core.estimation.config import Segment
-from orbit_tracking.core.estimation.coverage import merge_segments
+from orbit_tracking.core.estimation.coverage import merge_segments, unsampled_spans
+from orbit_tracking.core.estimation.events import detector_reach
 
-__all__ = ['GapManoeuvres', 'event_spans', 'gap_manoeuvres', 'instants']
+if TYPE_CHECKING:
+    from orbit_tracking.core.data.observations import Observations
+    from orbit_tracking.core.estimation.config import EstimatorConfig
+    from orbit_tracking.core.estimation.problem import Problem
+
+__all__ = [
+    'GapManoeuvres',
+    'event_spans',
+    'gap_manoeuvres',
+    'instants',
+    'unseen_spans',
+    'window_manoeuvres',
+]
 
 FloatArray = NDArray[np.float64]
 
@@ -276,3 +290,73 @@ def gap_manoeuvres(
         unseen_spans=len(unseen) if unseen_density > 0.0 else 0,
         weak_densities=tuple(q for _, q in weak if q > 0.0),
     )
+
+
+def window_manoeuvres(
+    prob: Problem,
+    jac: sp.csr_matrix | None,
+    cov: FloatArray,
+    tid: int,
+    segs: tuple[Segment, ...],
+    events: tuple[float, ...],
+    cfg: EstimatorConfig,
+    scale: float,
+    unseen: tuple[Segment, ...] = (),
+    weak: tuple[tuple[float, float], ...] = (),
+) -> GapManoeuvres | None:
+    """The consider term of the manoeuvres target ``tid``'s incomplete segments and the
+    ``unseen`` spans of its telemetry may hide and of the detail its ``events`` and
+    ``weak`` changes ``(time, jerk jump)`` leave unmodelled (None when none applies)."""
+    traj = prob.trajs[tid]
+    spans = event_spans(events, cfg.event_manoeuvre_half_width, traj.t0, traj.t1)
+    weak_spans = tuple(
+        (span, cfg.weak_manoeuvre_gain * jump**2)
+        for w, jump in weak
+        for span in event_spans((w,), cfg.event_manoeuvre_half_width, traj.t0, traj.t1)
+        if cfg.weak_manoeuvre_gain > 0.0 and jump > 0.0
+    )
+    if jac is None or not (
+        (segs and cfg.gap_manoeuvre_density > 0.0)
+        or (spans and cfg.event_manoeuvre_density > 0.0)
+        or (unseen and cfg.unseen_manoeuvre_density > 0.0)
+        or weak_spans
+    ):
+        return None
+    return gap_manoeuvres(
+        prob.rows,
+        jac,
+        cov,
+        prob.offsets[tid],
+        prob.trajs[tid].n_coef,
+        tid,
+        segs,
+        cfg.gap_manoeuvre_step,
+        cfg.gap_manoeuvre_density,
+        scale,
+        spans,
+        cfg.event_manoeuvre_density,
+        unseen,
+        cfg.unseen_manoeuvre_density,
+        weak_spans,
+    )
+
+
+def unseen_spans(
+    obs: Observations, tid: int, t0: float, t1: float, cfg: EstimatorConfig
+) -> tuple[Segment, ...]:
+    """Where target ``tid``'s telemetry, the rough trajectory whose events make knots, has
+    holes longer than two base knot spacings and three sampling intervals
+    (:func:`~orbit_tracking.core.estimation.coverage.unsampled_spans`), widened by the
+    event detector's reach (:func:`~orbit_tracking.core.estimation.events.detector_reach`):
+    its fits take ``max(3, event_window / dt)`` samples on each side and see no event whose
+    samples reach across a hole, three seconds at 1 Hz (the states just after an outage
+    were off by 0.15 m/s at 0.02 m/s sigmas, robustness aircraft draw 9, 1-2 s after its
+    outage's end, when the spans were widened by ``event_window`` alone)."""
+    tel = obs.telemetry.get(tid) if cfg.use_telemetry else None
+    if tel is None or len(tel) < 4:
+        return ()
+    t = np.sort(np.asarray(tel.time, dtype=np.float64))
+    dt = float(np.median(np.diff(t)))
+    hole = max(2.0 * cfg.knots.base_spacing, 3.0 * dt)
+    reach = detector_reach(dt, cfg.knots.event_window)
+    return tuple(unsampled_spans(t, t0, t1, hole, max(cfg.knots.event_window, reach)))
