@@ -115,7 +115,8 @@ def find_incomplete_segments(
         # a rough trajectory held constant past its samples (fixes that stop where the
         # segment starts) put every row of a bin at one position moving at speed, and two
         # CW radars' blind direction (the whole path turned about their baseline changes
-        # no range and no range rate) came out determined to 65 m, like its neighbours
+        # no range and no range rate) came out determined to 65 m: no outlier against the
+        # median of a window whose bins were mostly in the segment
         x = centre[b].copy()
         x[:, :3] += (t - mid[b])[:, None] * x[:, 3:]
         _, jac = predict(tab.fields, x, s.pose.take(np.flatnonzero(sel)), jacobian=True)

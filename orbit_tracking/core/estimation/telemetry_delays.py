@@ -40,16 +40,21 @@ from orbit_tracking.core.estimation.telemetry_velocity import (
     ScoreTest,
     score_statistic,
 )
+from orbit_tracking.core.models.measurements import residual
 
 if TYPE_CHECKING:
     from orbit_tracking.core.estimation.gauss_newton import GnOutcome
     from orbit_tracking.core.estimation.problem import Problem
 
 __all__ = [
+    'EVENT_MASK_S',
+    'EVENT_SHIFT_CHI2',
+    'EVENT_SHIFT_SIGMA',
     'DelayTest',
     'align_events',
     'delay_test',
     'solve_with_aligned_events',
+    'station_chi2_near',
 ]
 
 FloatArray = NDArray[np.float64]
@@ -143,8 +148,6 @@ def station_chi2_near(prob: Problem, beta: FloatArray, times: FloatArray, width:
     """Sum of the squared station residuals used (in their declared sigmas) within
     ``width`` [s] of any of ``times``: the evidence of data whose errors the telemetry's do
     not share."""
-    from orbit_tracking.core.models.measurements import residual
-
     total = 0.0
     for bi, b in enumerate(prob.stations):
         near = np.min(np.abs(b.time[:, None] - times[None, :]), axis=1) <= width
