@@ -264,29 +264,3 @@ def test_the_first_solve_gives_up_only_on_an_unanchored_segment_another_window_c
     give_up_early(crawl, late, start, cfg, 40.0, 100.0, short, True)  # type: ignore[arg-type]
     give_up_early(crawl, late, start, cfg, 40.0, 100.0, None, True)
 
-
-def test_a_knot_test_whose_knots_do_not_settle_ends_the_attempt_and_the_retries_take_over():
-    """Robustness ascent draw 1011 (scratch seeds, no telemetry), its window cut to
-    40-75 s: two CW radars alone see 46.6-63 s, and the knots the knot test asked for
-    there left the solve crawling along their blind turn about the baseline; round after
-    round of refinement crawled on (10 s) before the window failed and the retry with
-    fewer knots settled. Now the first refined solve that does not settle ends the
-    attempt (not a success, 8 km off), and the retry gives the same honest window."""
-    from dataclasses import replace
-
-    from orbit_tracking.core.estimation.estimator import estimate
-    from orbit_tracking.core.metrics import nees
-    from orbit_tracking.tools.bench.robustness_draw import _case
-    from orbit_tracking.tools.estimator_parameters import estimator_configs
-
-    case = _case('ascent', 1011)
-    cfg = estimator_configs({})[0]
-    first = estimate(case.obs_est, 40.0003, 75.0003, replace(cfg, retry=False))
-    assert not first.success and 'knot test stopped' in first.message, first.message
-    est = estimate(case.obs_est, 40.0003, 75.0003, cfg)
-    assert est.success and est.attempts == 2, est.message
-    sel = (case.truth_t >= est.t0) & (case.truth_t <= est.t1)
-    x, cov = est.targets[0].states(case.truth_t[sel])
-    err = x[:, :3] - case.truth_x[sel, :3]
-    assert np.max(np.linalg.norm(err, axis=1)) < 1.0
-    assert np.max(nees(err, cov[:, :3, :3])) < 25.0

@@ -110,14 +110,6 @@ REFINE_MAX_CHI2 = 3.0
 """The measurement-driven knot test runs only while chi2/dof of the fit is below this."""
 
 
-class _NotSettled(EstimationError):
-    """A solve on the knot test's knots that did not settle (where those before had)."""
-
-    def __init__(self, outcome: GnOutcome) -> None:
-        self.outcome = outcome
-        super().__init__(f'its knots did not settle ({outcome.message})')
-
-
 # ---------------------------------------------------------------------------------------
 # the window
 
@@ -263,27 +255,19 @@ def _estimate_once(
     iterations = halvings = 0
 
     def solve_on(
-        p: Problem, b: FloatArray, warm_up: bool = True, early: bool = False, settle: bool = False
+        p: Problem, b: FloatArray, warm_up: bool = True, early: bool = False
     ) -> tuple[GnOutcome, FloatArray, sp.csr_matrix, FloatArray, float, bool]:
         """Solve ``p`` from ``b`` (counting the iterations), with the covariance; with
         ``early`` (and ``quick``) give up as soon as the first plain solve has not settled
-        at an unanchored edge segment, before the gate rounds; with ``settle`` raise
-        ``_NotSettled`` then."""
+        at an unanchored edge segment, before the gate rounds."""
         nonlocal iterations, halvings
         assert cfg is not None  # (mypy: cfg is rebound below, to a finer velocity error)
-        limit = cfg.max_unconverged_decrement
 
         def check(o: GnOutcome) -> None:
-            nonlocal iterations, halvings
             assert cfg is not None
-            if early and quick:
-                give_up_early(o, obs, segments, cfg, t0, t1, previous, more_after)
-            if settle and not o.converged and o.decrement > limit:
-                iterations += o.iterations
-                halvings += o.halvings
-                raise _NotSettled(o)
+            give_up_early(o, obs, segments, cfg, t0, t1, previous, more_after)
 
-        o, i2, h2 = solve(p, b, cfg, warm_up=warm_up, check=check if early or settle else None)
+        o, i2, h2 = solve(p, b, cfg, warm_up=warm_up, check=check if early and quick else None)
         iterations += i2
         halvings += h2
         return (o, *covariance(p, o.beta))
@@ -424,7 +408,6 @@ def _estimate_once(
             out, r, jac, cov, cond, singular = solve_on(prob, beta, warm_up=False)
     added = {tid: 0 for tid in selections}
     refine_note = ''
-    unsettled = False
     for _ in range(cfg.refine_rounds):
         fit = float(r @ r) / max(r.size - prob.n, 1)
         if fit > REFINE_MAX_CHI2:
@@ -441,22 +424,10 @@ def _estimate_once(
         prob, beta, change = on_new_knots(new_axes, new_tel)
         for tid, n in change.items():
             added[tid] += n
-        try:
-            # the refined problem carries the gates over (rebuild): no warm-up to decide them
-            out, r, jac, cov, cond, singular = solve_on(
-                prob, beta, warm_up=False, settle=out.converged
-            )
-        except _NotSettled as exc:
-            # the solve crawls (two CW radars' blind turn about their baseline, left to
-            # knots the test asked for): more rounds only crawl on; the window is not a
-            # success, and the retries take over (fewer knots settled draw 1011's window)
-            out = exc.outcome
-            r, jac, cov, cond, singular = covariance(prob, out.beta)
-            refine_note += f'; knot test stopped: {exc}'
-            unsettled = True
-            break
+        # the refined problem carries the gates over (rebuild): no warm-up to decide them
+        out, r, jac, cov, cond, singular = solve_on(prob, beta, warm_up=False)
     gate_events: dict[int, list[float]] = {}
-    for _ in range(0 if unsettled else cfg.gate_event_rounds):
+    for _ in range(cfg.gate_event_rounds):
         found = gate_cluster_events(prob, segments, t0, t1)
         if not found:
             break
