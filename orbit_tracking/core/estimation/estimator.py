@@ -58,7 +58,11 @@ from orbit_tracking.core.estimation.coverage import (
     merge_segments,
 )
 from orbit_tracking.core.estimation.gap_manoeuvres import unseen_spans, window_manoeuvres
-from orbit_tracking.core.estimation.gate_events import gate_cluster_events, with_events
+from orbit_tracking.core.estimation.gate_events import (
+    gate_cluster_events,
+    refine_event_times,
+    with_events,
+)
 from orbit_tracking.core.estimation.gauss_newton import GnOutcome, covariance, solve
 from orbit_tracking.core.estimation.knot_refinement import (
     choose_knots_safely,
@@ -427,25 +431,49 @@ def _estimate_once(
         # the refined problem carries the gates over (rebuild): no warm-up to decide them
         out, r, jac, cov, cond, singular = solve_on(prob, beta, warm_up=False)
     gate_events: dict[int, list[float]] = {}
+    shifts: list[float] = []  # of the gate events the measurements moved [s]
     for _ in range(cfg.gate_event_rounds):
         found = gate_cluster_events(prob, segments, t0, t1)
         if not found:
             break
+        before = {tid: prob.trajs[tid].axes for tid in found}
         new_axes = {
-            tid: with_events(prob.trajs[tid].axes, taus, cfg.knots.min_spacing)
+            tid: with_events(before[tid], taus, cfg.knots.min_spacing)
             for tid, taus in found.items()
         }
         prob, beta, _ = on_new_knots(new_axes)
+        prob.gated.clear()  # the values the missed event spoiled are decided afresh
+        out, r, jac, cov, cond, singular = solve_on(prob, beta)
+        # the rejections' median is where the misfit showed: the data place the jump
+        moved, it_moved = refine_event_times(
+            prob, out.beta, before, found, segments, obs, cfg, t0, t1
+        )
+        iterations += it_moved
+        if moved:
+            for tid, taus in moved.items():
+                shifts.extend(b - a for a, b in zip(found[tid], taus, strict=True) if b != a)
+            found = {**found, **moved}
+            prob, beta, _ = on_new_knots(
+                {
+                    tid: with_events(before[tid], taus, cfg.knots.min_spacing)
+                    for tid, taus in moved.items()
+                }
+            )
+            prob.gated.clear()
+            out, r, jac, cov, cond, singular = solve_on(prob, beta)
         for tid, taus in found.items():
             gate_events.setdefault(tid, []).extend(taus)
             knotted = tuple(sorted(selections[tid].events + tuple(taus)))
             selections[tid] = replace(selections[tid], events=knotted)
-        prob.gated.clear()  # the values the missed event spoiled are decided afresh
-        out, r, jac, cov, cond, singular = solve_on(prob, beta)
     for tid, taus in gate_events.items():
         refine_note += (
             f'; target {tid} events where the gate rejections clustered: '
-            + ', '.join(f'{t:.2f} s' for t in taus)
+            + ', '.join(f'{t:.3f} s' for t in taus)
+        )
+    if shifts:
+        refine_note += (
+            f' ({len(shifts)} moved to where the measurements fit them best, by up to '
+            f'{1e3 * max(abs(d) for d in shifts):.0f} ms)'
         )
     for tid, n_added in added.items():
         selections[tid] = replace(selections[tid], refined=n_added, pruned=pruned[tid])
