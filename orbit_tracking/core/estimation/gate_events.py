@@ -41,13 +41,14 @@ from numpy.typing import NDArray
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.estimation.bspline import SplineAxis
 from orbit_tracking.core.estimation.config import EstimatorConfig, Segment
-from orbit_tracking.core.estimation.problem import Problem
+from orbit_tracking.core.estimation.problem import GateKey, Problem
 
 __all__ = [
     'EDGE_MARGIN',
     'FIRST_STEP',
     'MAX_TRIALS',
     'MIN_VALUES',
+    'LOCAL_S',
     'MOVE_CHI2',
     'TRIAL_ITERATIONS',
     'SPAN',
@@ -78,6 +79,9 @@ MAX_TRIALS = 8
 
 TOLERANCE = 0.001
 """The search for an event's time stops when its next trial is this close [s] to one made."""
+
+LOCAL_S = 2.0
+"""Seconds of measurements on each side of the search's reach that its trials fit."""
 
 TRIAL_ITERATIONS = 3
 """Gauss-Newton iterations a trial time may spend (one or two settle it as a rule)."""
@@ -214,26 +218,80 @@ def _vertex(pts: Sequence[tuple[float, float]]) -> float | None:
     return -b / (2.0 * a) if a > 0.0 else None
 
 
-def _trial_cost(
-    prob: Problem,
-    beta: FloatArray,
-    tid: int,
-    axes: list[SplineAxis],
-    obs: Observations,
-    cfg: EstimatorConfig,
-    t0: float,
-    t1: float,
-    spent: list[int],
-) -> float:
-    """The cost of ``prob`` solved from ``beta`` with target ``tid`` on ``axes`` (its gates
-    held; the Gauss-Newton iterations are added to ``spent``)."""
-    from orbit_tracking.core.estimation.gauss_newton import gauss_newton
-    from orbit_tracking.core.estimation.knot_refinement import rebuild
+class _LocalTrials:
+    """The window's measurements within :data:`LOCAL_S` of the reach of one event's search
+    around ``tau0`` (clipped to the window), fitted by the target's spline cut to that
+    span: each trial time's cost is the least-squares cost of that span solved from the
+    window's solution with the event there (the window's biases and white-jerk density
+    held; the gross errors of the first trial gated in all). A B-spline is local, and so
+    is what a jump's time changes: a tenth of the whole window's price."""
 
-    p, b = rebuild(prob, beta, {tid: axes}, {}, obs, cfg, t0, t1)
-    o = gauss_newton(p, b, cfg)
-    spent.append(o.iterations)
-    return o.cost if np.isfinite(o.cost) else math.inf
+    def __init__(
+        self,
+        prob: Problem,
+        beta: FloatArray,
+        tid: int,
+        tau0: float,
+        obs: Observations,
+        cfg: EstimatorConfig,
+        t0: float,
+        t1: float,
+    ) -> None:
+        reach = 0.5 * SPAN + LOCAL_S
+        self.a, self.b = max(t0, tau0 - reach), min(t1, tau0 + reach)
+        self.tid = tid
+        self.traj = prob.trajs[tid]
+        self.obs = obs.window(self.a, self.b)
+        self.ts = np.linspace(self.a, self.b, int(200 * (self.b - self.a)) + 2)
+        self.x = self.traj.states(prob._coef(beta, tid), self.ts)
+        held = tuple(
+            replace(
+                bp, prior=float(np.clip(beta[prob.bias_offset + q], *bp.bounds)), estimate=False
+            )
+            for q, bp in enumerate(prob.biases)
+        )
+        self.cfg = replace(
+            cfg, biases=held, max_iterations=min(cfg.max_iterations, TRIAL_ITERATIONS)
+        )
+        self.gates: dict[GateKey, NDArray[np.bool_]] | None = None
+        self.jerk_q = dict(prob.jerk_q)
+        self.spent = 0
+
+    def cost(self, axes: Sequence[SplineAxis]) -> float:
+        """Least-squares cost of the span on ``axes`` (window axes; cut to the span)."""
+        from orbit_tracking.core.estimation.gauss_newton import (
+            GROSS_FACTOR,
+            ROBUST_KINDS,
+            gate_residuals,
+            gauss_newton,
+        )
+
+        gap = self.cfg.knots.min_spacing
+        cut = []
+        for ax in axes:
+            inner = ax.interior[(ax.interior > self.a + gap) & (ax.interior < self.b - gap)]
+            cut.append(SplineAxis.from_interior(inner, self.a, self.b, ax.degree))
+        local = self.traj.with_axes(cut)
+        try:
+            coef = local.fit_states(self.ts, self.x[:, :3], self.x[:, 3:])
+            p = Problem(self.obs, {self.tid: (local, coef)}, self.cfg, self.a, self.b)
+            # the window's white-jerk density: the same stiffness as the window's solve
+            p.jerk_q.update({k: q for k, q in self.jerk_q.items() if k in p.jerk_q})
+            start = np.zeros(p.n)
+            start[p.offsets[self.tid] : p.offsets[self.tid] + coef.size] = coef
+            start[p.bias_offset : p.bias_offset + len(p.biases)] = p.bias_prior
+            if self.gates is None:
+                gate_residuals(
+                    p, start, dict.fromkeys(ROBUST_KINDS, GROSS_FACTOR * self.cfg.gate_sigma)
+                )
+                self.gates = {k: v.copy() for k, v in p.gated.items()}
+            else:
+                p.gated = {k: v.copy() for k, v in self.gates.items()}
+            o = gauss_newton(p, start, self.cfg)
+        except (ValueError, np.linalg.LinAlgError):
+            return math.inf
+        self.spent += o.iterations
+        return o.cost if np.isfinite(o.cost) else math.inf
 
 
 def refine_event_times(
@@ -250,60 +308,43 @@ def refine_event_times(
     """The events ``found`` (per target), which ``prob`` holds on the axes ``before``
     (:func:`with_events`) and is solved for at ``beta``, each moved to the time of least
     cost that :func:`_search` finds within ``SPAN / 2`` of it, the others held. Every trial
-    solves the window afresh with only the gross errors gated (the values a misplaced jump
-    spoils are the evidence of where it is) and with no simple knot within reach of the
-    search (the same freedom at every trial time). Returns the targets with a moved event
-    and their event times, and the Gauss-Newton iterations spent; ``prob``'s gates are as
-    they were."""
-    from orbit_tracking.core.estimation.gauss_newton import (
-        GROSS_FACTOR,
-        ROBUST_KINDS,
-        gate_residuals,
-    )
-
+    solves the measurements around the event afresh (:class:`_LocalTrials`) with only the
+    gross errors gated (the values a misplaced jump spoils are the evidence of where it
+    is) and no simple knot within reach of the search (the same freedom at every trial
+    time). Returns the targets with a moved event and their event times, and the
+    Gauss-Newton iterations spent."""
     moved: dict[int, list[float]] = {}
-    spent: list[int] = []
-    saved = {k: v.copy() for k, v in prob.gated.items()}
-    refused = prob.gate_refused
-    # a trial that has not settled in a few iterations is crawling along a direction the
-    # data hardly determine: its cost is as good as settled for comparing the times
-    trial_cfg = replace(cfg, max_iterations=min(cfg.max_iterations, TRIAL_ITERATIONS))
+    spent = 0
     reach = 0.5 * SPAN + cfg.knots.min_spacing
-    try:
-        # (the rebuilt problems share these gates)
-        gate_residuals(prob, beta, dict.fromkeys(ROBUST_KINDS, GROSS_FACTOR * cfg.gate_sigma))
-        for tid, first in found.items():
-            taus = list(first)
-            knotted = np.setdiff1d(prob.trajs[tid].repeated_knots(), np.asarray(taus))
-            for i, tau0 in enumerate(first):
-                clear = [_without(ax, tau0) for ax in with_events(before[tid], [tau0], reach)]
-                others = taus[:i] + taus[i + 1 :]
+    for tid, first in found.items():
+        taus = list(first)
+        knotted = np.setdiff1d(prob.trajs[tid].repeated_knots(), np.asarray(taus))
+        for i, tau0 in enumerate(first):
+            clear = [_without(ax, tau0) for ax in with_events(before[tid], [tau0], reach)]
+            others = taus[:i] + taus[i + 1 :]
+            trials = _LocalTrials(prob, beta, tid, tau0, obs, cfg, t0, t1)
 
-                def cost(
-                    tau: float,
-                    tid: int = tid,
-                    clear: list[SplineAxis] = clear,
-                    others: list[float] = others,
-                ) -> float:
-                    axes = with_events(clear, [*others, tau], cfg.knots.min_spacing)
-                    return _trial_cost(prob, beta, tid, axes, obs, trial_cfg, t0, t1, spent)
+            def cost(
+                tau: float,
+                clear: list[SplineAxis] = clear,
+                others: list[float] = others,
+                trials: _LocalTrials = trials,
+            ) -> float:
+                return trials.cost(with_events(clear, [*others, tau], cfg.knots.min_spacing))
 
-                def ok(
-                    tau: float,
-                    tau0: float = tau0,
-                    others: list[float] = others,
-                    knotted: FloatArray = knotted,
-                    spans: Sequence[Segment] = segments.get(tid, ()),
-                ) -> bool:
-                    return abs(tau - tau0) <= 0.5 * SPAN and _allowed(
-                        tau, others, knotted, spans, t0, t1
-                    )
+            def ok(
+                tau: float,
+                tau0: float = tau0,
+                others: list[float] = others,
+                knotted: FloatArray = knotted,
+                spans: Sequence[Segment] = segments.get(tid, ()),
+            ) -> bool:
+                return abs(tau - tau0) <= 0.5 * SPAN and _allowed(
+                    tau, others, knotted, spans, t0, t1
+                )
 
-                taus[i] = _search(cost, ok, tau0)
-            if taus != list(first):
-                moved[tid] = taus
-    finally:
-        prob.gated.clear()
-        prob.gated.update(saved)
-        prob.gate_refused = refused
-    return moved, sum(spent)
+            taus[i] = _search(cost, ok, tau0)
+            spent += trials.spent
+        if taus != list(first):
+            moved[tid] = taus
+    return moved, spent
