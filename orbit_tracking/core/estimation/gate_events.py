@@ -127,12 +127,7 @@ def gate_cluster_events(
         found = [
             tau
             for tau in _clusters(np.sort(np.concatenate(parts)))
-            if t0 + EDGE_MARGIN < tau < t1 - EDGE_MARGIN
-            and not np.any(np.abs(knotted - tau) < 0.5 * EDGE_MARGIN)
-            and not any(
-                a - 0.5 * EDGE_MARGIN <= tau <= b + 0.5 * EDGE_MARGIN
-                for a, b in segments.get(tid, ())
-            )
+            if _allowed(tau, (), knotted, segments.get(tid, ()), t0, t1)
         ]
         if found:
             out[tid] = found
@@ -163,7 +158,8 @@ def _allowed(
     t0: float,
     t1: float,
 ) -> bool:
-    """Whether an event may stand at ``tau`` (the rules of :func:`gate_cluster_events`)."""
+    """Whether an event may stand at ``tau``: :data:`EDGE_MARGIN` inside the window, and
+    half of it from ``others`` and the ``knotted`` events and outside the ``segments``."""
     near = [*others, *knotted]
     return (
         t0 + EDGE_MARGIN < tau < t1 - EDGE_MARGIN
@@ -224,7 +220,7 @@ class _LocalTrials:
     span: each trial time's cost is the least-squares cost of that span solved from the
     window's solution with the event there (the window's biases and white-jerk density
     held; the gross errors of the first trial gated in all). A B-spline is local, and so
-    is what a jump's time changes: a tenth of the whole window's price."""
+    is what a jump's time changes: a trial costs a small part of a window's solve."""
 
     def __init__(
         self,
