@@ -51,6 +51,7 @@ __all__ = [
     'LOCAL_S',
     'MOVE_CHI2',
     'TRIAL_ITERATIONS',
+    'SEGMENT_MARGIN',
     'SPAN',
     'TOLERANCE',
     'gate_cluster_events',
@@ -68,8 +69,16 @@ MIN_VALUES = 3
 
 EDGE_MARGIN = 0.5
 """No event closer than this [s] to a window edge, or (half of it) to an event already
-knotted or an incomplete segment."""
+knotted."""
 
+
+SEGMENT_MARGIN = 1.0
+"""No event closer than this [s] to an incomplete segment: the one or two stations there
+cannot pin the acceleration on that side of a jump. At a quarter of a second (half of
+:data:`EDGE_MARGIN`), robustness draw ascent 62 got events at 27.07 s and 27.72 s, before
+a segment from 27.83 s that two CW radars alone see, and the positions in the segment
+came out 1-6 m off at sigmas of a metre or less (120 states beyond 5 sigma); at one
+second it has none."""
 
 FIRST_STEP = 0.01
 """First step [s] of the search for an event's time; each further step downhill doubles."""
@@ -158,13 +167,14 @@ def _allowed(
     t0: float,
     t1: float,
 ) -> bool:
-    """Whether an event may stand at ``tau``: :data:`EDGE_MARGIN` inside the window, and
-    half of it from ``others`` and the ``knotted`` events and outside the ``segments``."""
+    """Whether an event may stand at ``tau``: :data:`EDGE_MARGIN` inside the window, half
+    of it from ``others`` and the ``knotted`` events, :data:`SEGMENT_MARGIN` from the
+    ``segments``."""
     near = [*others, *knotted]
     return (
         t0 + EDGE_MARGIN < tau < t1 - EDGE_MARGIN
         and not any(abs(k - tau) < 0.5 * EDGE_MARGIN for k in near)
-        and not any(a - 0.5 * EDGE_MARGIN <= tau <= b + 0.5 * EDGE_MARGIN for a, b in segments)
+        and not any(a - SEGMENT_MARGIN <= tau <= b + SEGMENT_MARGIN for a, b in segments)
     )
 
 
