@@ -24,9 +24,9 @@ The median of the rejected epochs is only where the misfit showed, not where the
 acceleration jumped: on robustness draw ascent 39 it put a staging 33 ms early, and the
 velocity beside it was 0.2 m/s off at 0.04 m/s sigmas. So once the window is solved with
 the new events, :func:`refine_event_times` moves each of them to where the measurements
-fit it best (the profile of the cost over the event's time, the gates held, searched
-downhill from the median and closed by a parabola), when that lowers the cost by more
-than :data:`MOVE_CHI2`.
+fit it best (the profile of the cost over the event's time, from the measurements around
+it with only the gross errors gated, searched downhill from the median and closed by
+parabolas), when that lowers the cost by more than :data:`MOVE_CHI2`.
 """
 
 from __future__ import annotations
@@ -46,14 +46,14 @@ from orbit_tracking.core.estimation.problem import GateKey, Problem
 __all__ = [
     'EDGE_MARGIN',
     'FIRST_STEP',
+    'LOCAL_S',
     'MAX_TRIALS',
     'MIN_VALUES',
-    'LOCAL_S',
     'MOVE_CHI2',
-    'TRIAL_ITERATIONS',
     'SEGMENT_MARGIN',
     'SPAN',
     'TOLERANCE',
+    'TRIAL_ITERATIONS',
     'gate_cluster_events',
     'refine_event_times',
     'with_events',
