@@ -429,8 +429,8 @@ class EstimatorNode(WindowOutputs, StationInputs):
                 'gate_event_rounds',
                 2,
                 'Rounds of events put where the residual gate rejected station values '
-                'clustered in time (a staging no knot follows), each followed by a new solve; '
-                '0 = off.',
+                'clustered in time (a staging no knot follows), each event then moved to where '
+                'the measurements fit it best, and followed by a new solve; 0 = off.',
                 read_only=True,
                 min_value=0,
                 max_value=10,

@@ -159,7 +159,8 @@ class EstimatorConfig:
     gate_event_rounds : int
         Rounds of events put where the residual gate's rejected station values cluster in
         time (a staging no knot follows: :mod:`~orbit_tracking.core.estimation.
-        gate_events`), each followed by a new solve; 0 = off.
+        gate_events`), each event then moved to where the measurements fit it best, and
+        followed by a new solve; 0 = off.
     refine_events : bool
         Let that test also insert events (a knot of multiplicity ``degree - 1`` on every
         axis: the acceleration may jump there) where the measurements ask for one, outside
