@@ -41,7 +41,8 @@ from numpy.typing import NDArray
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.estimation.bspline import SplineAxis
 from orbit_tracking.core.estimation.config import EstimatorConfig, Segment
-from orbit_tracking.core.estimation.problem import GateKey, Problem
+from orbit_tracking.core.estimation.gauss_newton import GROSS_FACTOR, gate_residuals, gauss_newton
+from orbit_tracking.core.estimation.problem import ROBUST_KINDS, GateKey, Problem
 
 __all__ = [
     'EDGE_MARGIN',
@@ -178,10 +179,14 @@ def _allowed(
     )
 
 
-def _without(ax: SplineAxis, tau: float) -> SplineAxis:
-    """``ax`` without its knots at ``tau``."""
-    inner = ax.interior[np.abs(ax.interior - tau) > 1e-12]
-    return SplineAxis.from_interior(inner, ax.t0, ax.t1, ax.degree)
+def _cleared(axes: Sequence[SplineAxis], tau: float, reach: float) -> list[SplineAxis]:
+    """``axes`` without their knots within ``reach`` of ``tau``."""
+    return [
+        SplineAxis.from_interior(
+            ax.interior[np.abs(ax.interior - tau) > reach], ax.t0, ax.t1, ax.degree
+        )
+        for ax in axes
+    ]
 
 
 def _search(cost: Callable[[float], float], ok: Callable[[float], bool], tau0: float) -> float:
@@ -265,13 +270,6 @@ class _LocalTrials:
 
     def cost(self, axes: Sequence[SplineAxis]) -> float:
         """Least-squares cost of the span on ``axes`` (window axes; cut to the span)."""
-        from orbit_tracking.core.estimation.gauss_newton import (
-            GROSS_FACTOR,
-            ROBUST_KINDS,
-            gate_residuals,
-            gauss_newton,
-        )
-
         gap = self.cfg.knots.min_spacing
         cut = []
         for ax in axes:
@@ -326,7 +324,7 @@ def refine_event_times(
         taus = list(first)
         knotted = np.setdiff1d(prob.trajs[tid].repeated_knots(), np.asarray(taus))
         for i, tau0 in enumerate(first):
-            clear = [_without(ax, tau0) for ax in with_events(before[tid], [tau0], reach)]
+            clear = _cleared(before[tid], tau0, reach)
             others = taus[:i] + taus[i + 1 :]
             trials = _LocalTrials(prob, beta, tid, tau0, obs, cfg, t0, t1)
 
