@@ -306,6 +306,14 @@ class EstimatorNode(WindowOutputs, StationInputs):
                 'or on; see docs/ESTIMATOR.md.',
                 read_only=True,
             ),
+            move_events=declare(
+                self,
+                'move_events',
+                True,
+                'Move each event of the rough trajectory (timed by its own samples) to where '
+                'the station measurements fit it best, and solve the window again.',
+                read_only=True,
+            ),
             refine_events=declare(
                 self,
                 'refine_events',

@@ -161,6 +161,9 @@ class EstimatorConfig:
         time (a staging no knot follows: :mod:`~orbit_tracking.core.estimation.
         gate_events`), each event then moved to where the measurements fit it best, and
         followed by a new solve; 0 = off.
+    move_events : bool
+        Move each event of the rough trajectory (timed by its own samples) to where the
+        station measurements fit it best, as the gate's events, and solve again.
     refine_events : bool
         Let that test also insert events (a knot of multiplicity ``degree - 1`` on every
         axis: the acceleration may jump there) where the measurements ask for one, outside
@@ -264,6 +267,7 @@ class EstimatorConfig:
     refine_alpha: float = 0.01
     refine_events: bool = False
     gate_event_rounds: int = 2
+    move_events: bool = True
     biases: tuple[BiasParameter, ...] = ()
     bias_observability: float = 0.9
     thrust_along_velocity: float = 0.0

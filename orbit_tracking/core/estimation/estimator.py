@@ -1,6 +1,6 @@
 """Trajectory estimation on a window of raw measurements (seed 000).
 
-(About 870 lines, over the ~600-line guide: the steps of one window solve, from the
+(About 880 lines, over the ~600-line guide: the steps of one window solve, from the
 knots to the verdict, read best in one place; its parts live in the modules it imports,
 the retries of a failed window in :mod:`~orbit_tracking.core.estimation.retries`.)
 
@@ -59,9 +59,12 @@ from orbit_tracking.core.estimation.coverage import (
 )
 from orbit_tracking.core.estimation.gap_manoeuvres import unseen_spans, window_manoeuvres
 from orbit_tracking.core.estimation.gate_events import (
+    event_knots,
     gate_cluster_events,
+    place_rough_events,
     refine_event_times,
     with_events,
+    without_events,
 )
 from orbit_tracking.core.estimation.gauss_newton import GnOutcome, covariance, solve
 from orbit_tracking.core.estimation.knot_refinement import (
@@ -401,6 +404,48 @@ def _estimate_once(
             selections[tid] = replace(selections[tid], trajectory=p.trajs[tid])
         return p, b, change
 
+    shifts: list[float] = []  # of the events the measurements moved [s]
+    if cfg.move_events:
+        # the rough trajectory's events are timed by its own samples: the measurements
+        # place them (as the gate's events below)
+        rough_events = {
+            tid: taus
+            for tid, s in selections.items()
+            if (taus := event_knots(prob.trajs[tid], s.events, s.kinks))
+        }
+        if rough_events:
+            bare = {
+                tid: without_events(prob.trajs[tid].axes, taus)
+                for tid, taus in rough_events.items()
+            }
+            moved, it_moved = place_rough_events(
+                prob, out.beta, bare, rough_events, segments, obs, cfg, t0, t1
+            )
+            iterations += it_moved
+            if moved:
+                prob, beta, _ = on_new_knots(
+                    {
+                        tid: with_events(bare[tid], taus, cfg.knots.min_spacing)
+                        for tid, taus in moved.items()
+                    }
+                )
+                prob.gated.clear()
+                out, r, jac, cov, cond, singular = solve_on(prob, beta)
+                for tid, taus in moved.items():
+                    old = rough_events[tid]
+                    shifts.extend(b - a for a, b in zip(old, taus, strict=True) if b != a)
+                    kept = [e for e in selections[tid].events if e not in old]
+                    selections[tid] = replace(
+                        selections[tid], events=tuple(sorted([*kept, *taus]))
+                    )
+                if shifts:
+                    tel_note += (
+                        f'; {len(shifts)} events of the rough trajectory moved to where the '
+                        f'measurements fit them best, by up to '
+                        f'{1e3 * max(abs(d) for d in shifts):.0f} ms'
+                    )
+                shifts = []
+
     pruned = {tid: 0 for tid in selections}
     if cfg.prune_z > 0.0 and cfg.knot_method == 'sparse':
         # knots the measurements do not support go before the knot test adds any
@@ -431,7 +476,6 @@ def _estimate_once(
         # the refined problem carries the gates over (rebuild): no warm-up to decide them
         out, r, jac, cov, cond, singular = solve_on(prob, beta, warm_up=False)
     gate_events: dict[int, list[float]] = {}
-    shifts: list[float] = []  # of the gate events the measurements moved [s]
     for _ in range(cfg.gate_event_rounds):
         found = gate_cluster_events(prob, segments, t0, t1)
         if not found:

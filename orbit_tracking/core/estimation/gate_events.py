@@ -27,6 +27,12 @@ the new events, :func:`refine_event_times` moves each of them to where the measu
 fit it best (the profile of the cost over the event's time, from the measurements around
 it with only the gross errors gated, searched downhill from the median and closed by
 parabolas), when that lowers the cost by more than :data:`MOVE_CHI2`.
+
+The rough trajectory's own events are timed by its samples alone, and two jumps half a
+second apart can confuse its detector (one of them put half a second late on robustness
+draw ascent 35), so :func:`place_rough_events` moves them the same way after the window's
+first solve: first on a grid within :data:`ROUGH_REACH`, then once more nearby when all
+have moved.
 """
 
 from __future__ import annotations
@@ -39,7 +45,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from orbit_tracking.core.data.observations import Observations
-from orbit_tracking.core.estimation.bspline import SplineAxis
+from orbit_tracking.core.estimation.bspline import SplineAxis, SplineTrajectory
 from orbit_tracking.core.estimation.config import EstimatorConfig, Segment
 from orbit_tracking.core.estimation.gauss_newton import GROSS_FACTOR, gate_residuals, gauss_newton
 from orbit_tracking.core.estimation.problem import ROBUST_KINDS, GateKey, Problem
@@ -47,17 +53,22 @@ from orbit_tracking.core.estimation.problem import ROBUST_KINDS, GateKey, Proble
 __all__ = [
     'EDGE_MARGIN',
     'FIRST_STEP',
+    'GRID_STEP',
     'LOCAL_S',
     'MAX_TRIALS',
     'MIN_VALUES',
     'MOVE_CHI2',
+    'ROUGH_REACH',
     'SEGMENT_MARGIN',
     'SPAN',
     'TOLERANCE',
     'TRIAL_ITERATIONS',
+    'event_knots',
     'gate_cluster_events',
+    'place_rough_events',
     'refine_event_times',
     'with_events',
+    'without_events',
 ]
 
 FloatArray = NDArray[np.float64]
@@ -85,7 +96,15 @@ FIRST_STEP = 0.01
 """First step [s] of the search for an event's time; each further step downhill doubles."""
 
 MAX_TRIALS = 8
-"""Solves the search for one event's time may spend."""
+"""Solves the search for one event's time may spend (beyond its grid)."""
+
+ROUGH_REACH = 0.6
+"""How far [s] the search may move an event of the rough trajectory: its detector, fitting
+quadratics over a second or two of telemetry, can misplace one of two jumps half a second
+apart (a cut-off and the next ignition) by that much."""
+
+GRID_STEP = 0.1
+"""Step [s] of the grid a search with a reach tries first."""
 
 TOLERANCE = 0.001
 """The search for an event's time stops when its next trial is this close [s] to one made."""
@@ -160,6 +179,37 @@ def with_events(
     return out
 
 
+def event_knots(
+    traj: SplineTrajectory, events: Sequence[float], kinks: Sequence[float]
+) -> list[float]:
+    """The ``events`` (not ``kinks``) that stand on ``traj`` as repeated knots of every
+    axis: acceleration jumps the spline may take."""
+    kink = {round(float(k), 12) for k in kinks}
+    out = []
+    for e in events:
+        if round(float(e), 12) in kink:
+            continue
+        if all(int(np.sum(np.abs(ax.interior - e) < 1e-9)) > 1 for ax in traj.axes):
+            out.append(float(e))
+    return out
+
+
+def without_events(axes: Sequence[SplineAxis], taus: Sequence[float]) -> list[SplineAxis]:
+    """``axes`` without their knots at the events ``taus``."""
+    t = np.asarray(taus, dtype=float)
+    return [
+        SplineAxis.from_interior(
+            ax.interior[np.min(np.abs(ax.interior[:, None] - t[None, :]), axis=1) > 1e-9]
+            if ax.interior.size and t.size
+            else ax.interior,
+            ax.t0,
+            ax.t1,
+            ax.degree,
+        )
+        for ax in axes
+    ]
+
+
 def _allowed(
     tau: float,
     others: Sequence[float],
@@ -189,18 +239,30 @@ def _cleared(axes: Sequence[SplineAxis], tau: float, reach: float) -> list[Splin
     ]
 
 
-def _search(cost: Callable[[float], float], ok: Callable[[float], bool], tau0: float) -> float:
+def _search(
+    cost: Callable[[float], float], ok: Callable[[float], bool], tau0: float, reach: float = 0.0
+) -> float:
     """The time of least ``cost`` found from ``tau0`` among the times ``ok`` allows, or
-    ``tau0`` unless that lowers the cost by :data:`MOVE_CHI2`. After the costs at
-    ``tau0 +- FIRST_STEP``: while the least cost is at the end of the times tried, a step
-    beyond it twice as long as the last; once a time is bracketed by higher costs, the
-    vertex of the parabola through it and its neighbours (until it lands within
-    :data:`TOLERANCE` of a time tried); at most :data:`MAX_TRIALS` costs."""
+    ``tau0`` unless that lowers the cost by :data:`MOVE_CHI2`. With a ``reach``, first the
+    costs on a grid of :data:`GRID_STEP` within it (the profile of a jump's time may have
+    several valleys when another jump is near), and the search goes on from the least.
+    After the costs at ``+- FIRST_STEP`` of the best time: while the least cost is at the
+    end of the times tried, a step beyond it twice as long as the last; once a time is
+    bracketed by higher costs, the vertex of the parabola through it and its neighbours
+    (until it lands within :data:`TOLERANCE` of a time tried); at most :data:`MAX_TRIALS`
+    costs beyond the grid."""
     tried: dict[float, float] = {tau0: cost(tau0)}
-    for t in (tau0 - FIRST_STEP, tau0 + FIRST_STEP):
-        if ok(t):
+    n = int(reach / GRID_STEP + 1e-9)
+    for k in range(1, n + 1):
+        for t in (tau0 - k * GRID_STEP, tau0 + k * GRID_STEP):
+            if ok(t):
+                tried[t] = cost(t)
+    budget = len(tried) - 1 + MAX_TRIALS
+    start = min(tried, key=lambda t: tried[t])
+    for t in (start - FIRST_STEP, start + FIRST_STEP):
+        if ok(t) and t not in tried:
             tried[t] = cost(t)
-    while len(tried) < MAX_TRIALS:
+    while len(tried) < budget:
         times = sorted(tried)
         k = min(range(len(times)), key=lambda j: tried[times[j]])
         if 0 < k < len(times) - 1:
@@ -247,8 +309,9 @@ class _LocalTrials:
         cfg: EstimatorConfig,
         t0: float,
         t1: float,
+        limit: float = 0.5 * SPAN,
     ) -> None:
-        reach = 0.5 * SPAN + LOCAL_S
+        reach = limit + LOCAL_S
         self.a, self.b = max(t0, tau0 - reach), min(t1, tau0 + reach)
         self.tid = tid
         self.traj = prob.trajs[tid]
@@ -308,6 +371,7 @@ def refine_event_times(
     cfg: EstimatorConfig,
     t0: float,
     t1: float,
+    reach: float = 0.0,
 ) -> tuple[dict[int, list[float]], int]:
     """The events ``found`` (per target), which ``prob`` holds on the axes ``before``
     (:func:`with_events`) and is solved for at ``beta``, each moved to the time of least
@@ -319,14 +383,16 @@ def refine_event_times(
     Gauss-Newton iterations spent."""
     moved: dict[int, list[float]] = {}
     spent = 0
-    reach = 0.5 * SPAN + cfg.knots.min_spacing
+    limit = max(reach, 0.5 * SPAN)
     for tid, first in found.items():
         taus = list(first)
-        knotted = np.setdiff1d(prob.trajs[tid].repeated_knots(), np.asarray(taus))
+        knotted = np.concatenate(  # the events ``before`` has
+            [v[c > 1] for v, c in (np.unique(a.interior, return_counts=True) for a in before[tid])]
+        )
         for i, tau0 in enumerate(first):
-            clear = _cleared(before[tid], tau0, reach)
+            clear = _cleared(before[tid], tau0, limit + cfg.knots.min_spacing)
             others = taus[:i] + taus[i + 1 :]
-            trials = _LocalTrials(prob, beta, tid, tau0, obs, cfg, t0, t1)
+            trials = _LocalTrials(prob, beta, tid, tau0, obs, cfg, t0, t1, limit)
 
             def cost(
                 tau: float,
@@ -343,12 +409,40 @@ def refine_event_times(
                 knotted: FloatArray = knotted,
                 spans: Sequence[Segment] = segments.get(tid, ()),
             ) -> bool:
-                return abs(tau - tau0) <= 0.5 * SPAN and _allowed(
+                return abs(tau - tau0) <= limit + 1e-9 and _allowed(
                     tau, others, knotted, spans, t0, t1
                 )
 
-            taus[i] = _search(cost, ok, tau0)
+            taus[i] = _search(cost, ok, tau0, reach)
             spent += trials.spent
         if taus != list(first):
             moved[tid] = taus
     return moved, spent
+
+
+def place_rough_events(
+    prob: Problem,
+    beta: FloatArray,
+    bare: Mapping[int, Sequence[SplineAxis]],
+    events: Mapping[int, Sequence[float]],
+    segments: Mapping[int, Sequence[Segment]],
+    obs: Observations,
+    cfg: EstimatorConfig,
+    t0: float,
+    t1: float,
+) -> tuple[dict[int, list[float]], int]:
+    """The rough trajectory's ``events`` (per target), which ``prob`` holds and is solved
+    for at ``beta``, placed by the measurements: :func:`refine_event_times` within
+    :data:`ROUGH_REACH` (on its grid), then once more within ``SPAN / 2`` of where that
+    put them (each event's first search held the others where the rough trajectory had
+    them). Returns the targets with a moved event and their event times, and the
+    Gauss-Newton iterations spent."""
+    now = {tid: list(taus) for tid, taus in events.items()}
+    spent = 0
+    for reach in (ROUGH_REACH, 0.0):
+        moved, it = refine_event_times(prob, beta, bare, now, segments, obs, cfg, t0, t1, reach)
+        spent += it
+        if not moved:
+            break
+        now.update(moved)
+    return {tid: taus for tid, taus in now.items() if taus != list(events[tid])}, spent
