@@ -40,8 +40,8 @@ def test_with_a_reach_the_search_finds_the_deeper_valley_beyond_a_local_one():
         return min(50.0 + 4e4 * (t - 10.01) ** 2, 2e5 * (t - 10.4) ** 2 - 500.0)
 
     always = lambda t: abs(t - 10.0) <= 0.6  # noqa: E731
-    assert gate_events._search(two_valleys, always, 10.0) == pytest.approx(10.01, abs=0.005)
-    far = gate_events._search(two_valleys, always, 10.0, gate_events.ROUGH_REACH)
+    assert gate_events.search_time(two_valleys, always, 10.0) == pytest.approx(10.01, abs=0.005)
+    far = gate_events.search_time(two_valleys, always, 10.0, gate_events.ROUGH_REACH)
     assert far == pytest.approx(10.4, abs=0.002)
 
 

@@ -314,6 +314,14 @@ class EstimatorNode(WindowOutputs, StationInputs):
                 'the station measurements fit it best, and solve the window again.',
                 read_only=True,
             ),
+            doubtful_events=declare(
+                self,
+                'doubtful_events',
+                True,
+                'Without telemetry, test an event near each change of acceleration the first '
+                'solution saw but did not knot; taken where the measurements ask for it.',
+                read_only=True,
+            ),
             refine_events=declare(
                 self,
                 'refine_events',

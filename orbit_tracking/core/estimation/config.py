@@ -164,6 +164,10 @@ class EstimatorConfig:
     move_events : bool
         Move each event of the rough trajectory (timed by its own samples) to where the
         station measurements fit it best, as the gate's events, and solve again.
+    doubtful_events : bool
+        Without telemetry, test an event near each change of acceleration the first
+        solution's detector saw (a doubtful change: no knots); taken where the measurements
+        ask for it (:mod:`~orbit_tracking.core.estimation.doubtful_events`).
     refine_events : bool
         Let that test also insert events (a knot of multiplicity ``degree - 1`` on every
         axis: the acceleration may jump there) where the measurements ask for one, outside
@@ -268,6 +272,7 @@ class EstimatorConfig:
     refine_events: bool = False
     gate_event_rounds: int = 2
     move_events: bool = True
+    doubtful_events: bool = True
     biases: tuple[BiasParameter, ...] = ()
     bias_observability: float = 0.9
     thrust_along_velocity: float = 0.0

@@ -57,6 +57,7 @@ from orbit_tracking.core.estimation.coverage import (
     find_incomplete_segments,
     merge_segments,
 )
+from orbit_tracking.core.estimation.doubtful_events import doubtful_events
 from orbit_tracking.core.estimation.gap_manoeuvres import unseen_spans, window_manoeuvres
 from orbit_tracking.core.estimation.gate_events import (
     event_knots,
@@ -404,47 +405,57 @@ def _estimate_once(
             selections[tid] = replace(selections[tid], trajectory=p.trajs[tid])
         return p, b, change
 
-    shifts: list[float] = []  # of the events the measurements moved [s]
+    def on_events(
+        before: Mapping[int, Sequence[SplineAxis]], taus: Mapping[int, list[float]]
+    ) -> None:
+        """The problem rebuilt on the axes ``before`` with the events ``taus`` and solved,
+        the gate decided afresh (the values a missed event spoiled)."""
+        nonlocal prob, out, r, jac, cov, cond, singular
+        assert cfg is not None
+        prob, b, _ = on_new_knots(
+            {tid: with_events(before[tid], t, cfg.knots.min_spacing) for tid, t in taus.items()}
+        )
+        prob.gated.clear()
+        out, r, jac, cov, cond, singular = solve_on(prob, b)
+
+    def placed(
+        before: Mapping[int, Sequence[SplineAxis]], found: Mapping[int, list[float]]
+    ) -> dict[int, list[float]]:
+        """:func:`on_events` with the events ``found``, then with each moved to where the
+        measurements fit it best (:func:`refine_event_times`); their times."""
+        nonlocal iterations
+        assert cfg is not None
+        on_events(before, found)
+        moved, it = refine_event_times(prob, out.beta, before, found, segments, obs, cfg, t0, t1)
+        iterations += it
+        if moved:
+            on_events(before, moved)
+        return {**found, **moved}
+
     if cfg.move_events:
         # the rough trajectory's events are timed by its own samples: the measurements
         # place them (as the gate's events below)
-        rough_events = {
+        tel_ev = {
             tid: taus
             for tid, s in selections.items()
             if (taus := event_knots(prob.trajs[tid], s.events, s.kinks))
         }
-        if rough_events:
-            bare = {
-                tid: without_events(prob.trajs[tid].axes, taus)
-                for tid, taus in rough_events.items()
-            }
-            moved, it_moved = place_rough_events(
-                prob, out.beta, bare, rough_events, segments, obs, cfg, t0, t1
+        bare = {tid: without_events(prob.trajs[tid].axes, taus) for tid, taus in tel_ev.items()}
+        moved, it_moved = place_rough_events(
+            prob, out.beta, bare, tel_ev, segments, obs, cfg, t0, t1
+        )
+        iterations += it_moved
+        if moved:
+            on_events(bare, moved)
+            pairs = [p for tid in moved for p in zip(tel_ev[tid], moved[tid], strict=True)]
+            shifts = [b - a for a, b in pairs if b != a]
+            for tid, taus in moved.items():
+                kept = [e for e in selections[tid].events if e not in tel_ev[tid]]
+                selections[tid] = replace(selections[tid], events=tuple(sorted([*kept, *taus])))
+            tel_note += (
+                f'; {len(shifts)} events of the rough trajectory moved to where the '
+                f'measurements fit them best, by up to {1e3 * max(map(abs, shifts)):.0f} ms'
             )
-            iterations += it_moved
-            if moved:
-                prob, beta, _ = on_new_knots(
-                    {
-                        tid: with_events(bare[tid], taus, cfg.knots.min_spacing)
-                        for tid, taus in moved.items()
-                    }
-                )
-                prob.gated.clear()
-                out, r, jac, cov, cond, singular = solve_on(prob, beta)
-                for tid, taus in moved.items():
-                    old = rough_events[tid]
-                    shifts.extend(b - a for a, b in zip(old, taus, strict=True) if b != a)
-                    kept = [e for e in selections[tid].events if e not in old]
-                    selections[tid] = replace(
-                        selections[tid], events=tuple(sorted([*kept, *taus]))
-                    )
-                if shifts:
-                    tel_note += (
-                        f'; {len(shifts)} events of the rough trajectory moved to where the '
-                        f'measurements fit them best, by up to '
-                        f'{1e3 * max(abs(d) for d in shifts):.0f} ms'
-                    )
-                shifts = []
 
     pruned = {tid: 0 for tid in selections}
     if cfg.prune_z > 0.0 and cfg.knot_method == 'sparse':
@@ -476,39 +487,36 @@ def _estimate_once(
         # the refined problem carries the gates over (rebuild): no warm-up to decide them
         out, r, jac, cov, cond, singular = solve_on(prob, beta, warm_up=False)
     gate_events: dict[int, list[float]] = {}
+    shifts = []  # of the gate events the measurements moved [s]
     for _ in range(cfg.gate_event_rounds):
         found = gate_cluster_events(prob, segments, t0, t1)
         if not found:
             break
-        before = {tid: prob.trajs[tid].axes for tid in found}
-        new_axes = {
-            tid: with_events(before[tid], taus, cfg.knots.min_spacing)
-            for tid, taus in found.items()
-        }
-        prob, beta, _ = on_new_knots(new_axes)
-        prob.gated.clear()  # the values the missed event spoiled are decided afresh
-        out, r, jac, cov, cond, singular = solve_on(prob, beta)
         # the rejections' median is where the misfit showed: the data place the jump
-        moved, it_moved = refine_event_times(
-            prob, out.beta, before, found, segments, obs, cfg, t0, t1
-        )
-        iterations += it_moved
-        if moved:
-            for tid, taus in moved.items():
-                shifts.extend(b - a for a, b in zip(found[tid], taus, strict=True) if b != a)
-            found = {**found, **moved}
-            prob, beta, _ = on_new_knots(
-                {
-                    tid: with_events(before[tid], taus, cfg.knots.min_spacing)
-                    for tid, taus in moved.items()
-                }
-            )
-            prob.gated.clear()
-            out, r, jac, cov, cond, singular = solve_on(prob, beta)
-        for tid, taus in found.items():
+        final = placed({tid: prob.trajs[tid].axes for tid in found}, found)
+        for tid, taus in final.items():
+            shifts.extend(b - a for a, b in zip(found[tid], taus, strict=True) if b != a)
             gate_events.setdefault(tid, []).extend(taus)
             knotted = tuple(sorted(selections[tid].events + tuple(taus)))
             selections[tid] = replace(selections[tid], events=knotted)
+    if cfg.doubtful_events:
+        # the first solution's changes (no telemetry): its detector blurs close jumps
+        doubts = {
+            tid: s.doubtful
+            for tid, s in selections.items()
+            if s.rough_source == 'fixes, then first solution'
+        }
+        asked, it_asked = doubtful_events(prob, out.beta, doubts, segments, obs, cfg, t0, t1)
+        iterations += it_asked
+        if asked:
+            asked = placed({tid: prob.trajs[tid].axes for tid in asked}, asked)
+        for tid, taus in asked.items():
+            knotted = tuple(sorted(selections[tid].events + tuple(taus)))
+            selections[tid] = replace(selections[tid], events=knotted)
+            refine_note += (
+                f'; target {tid} events the measurements asked for at doubtful changes: '
+                + ', '.join(f'{t:.3f} s' for t in taus)
+            )
     for tid, taus in gate_events.items():
         refine_note += (
             f'; target {tid} events where the gate rejections clustered: '

@@ -47,8 +47,14 @@ from numpy.typing import NDArray
 from orbit_tracking.core.data.observations import Observations
 from orbit_tracking.core.estimation.bspline import SplineAxis, SplineTrajectory
 from orbit_tracking.core.estimation.config import EstimatorConfig, Segment
-from orbit_tracking.core.estimation.gauss_newton import GROSS_FACTOR, gate_residuals, gauss_newton
+from orbit_tracking.core.estimation.gauss_newton import (
+    GROSS_FACTOR,
+    decrement,
+    gate_residuals,
+    gauss_newton,
+)
 from orbit_tracking.core.estimation.problem import ROBUST_KINDS, GateKey, Problem
+from orbit_tracking.core.estimation.scaling import normal_matrix
 
 __all__ = [
     'EDGE_MARGIN',
@@ -63,10 +69,13 @@ __all__ = [
     'SPAN',
     'TOLERANCE',
     'TRIAL_ITERATIONS',
+    'LocalTrials',
+    'event_allowed',
     'event_knots',
     'gate_cluster_events',
     'place_rough_events',
     'refine_event_times',
+    'search_time',
     'with_events',
     'without_events',
 ]
@@ -102,6 +111,7 @@ ROUGH_REACH = 0.6
 """How far [s] the search may move an event of the rough trajectory: its detector, fitting
 quadratics over a second or two of telemetry, can misplace one of two jumps half a second
 apart (a cut-off and the next ignition) by that much."""
+
 
 GRID_STEP = 0.1
 """Step [s] of the grid a search with a reach tries first."""
@@ -156,7 +166,7 @@ def gate_cluster_events(
         found = [
             tau
             for tau in _clusters(np.sort(np.concatenate(parts)))
-            if _allowed(tau, (), knotted, segments.get(tid, ()), t0, t1)
+            if event_allowed(tau, (), knotted, segments.get(tid, ()), t0, t1)
         ]
         if found:
             out[tid] = found
@@ -210,7 +220,7 @@ def without_events(axes: Sequence[SplineAxis], taus: Sequence[float]) -> list[Sp
     ]
 
 
-def _allowed(
+def event_allowed(
     tau: float,
     others: Sequence[float],
     knotted: FloatArray,
@@ -239,7 +249,7 @@ def _cleared(axes: Sequence[SplineAxis], tau: float, reach: float) -> list[Splin
     ]
 
 
-def _search(
+def search_time(
     cost: Callable[[float], float], ok: Callable[[float], bool], tau0: float, reach: float = 0.0
 ) -> float:
     """The time of least ``cost`` found from ``tau0`` among the times ``ok`` allows, or
@@ -291,7 +301,7 @@ def _vertex(pts: Sequence[tuple[float, float]]) -> float | None:
     return -b / (2.0 * a) if a > 0.0 else None
 
 
-class _LocalTrials:
+class LocalTrials:
     """The window's measurements within :data:`LOCAL_S` of the reach of one event's search
     around ``tau0`` (clipped to the window), fitted by the target's spline cut to that
     span: each trial time's cost is the least-squares cost of that span solved from the
@@ -310,6 +320,7 @@ class _LocalTrials:
         t0: float,
         t1: float,
         limit: float = 0.5 * SPAN,
+        stiff: bool = False,
     ) -> None:
         reach = limit + LOCAL_S
         self.a, self.b = max(t0, tau0 - reach), min(t1, tau0 + reach)
@@ -329,10 +340,13 @@ class _LocalTrials:
         )
         self.gates: dict[GateKey, NDArray[np.bool_]] | None = None
         self.jerk_q = dict(prob.jerk_q)
+        self.stiff = stiff
         self.spent = 0
 
-    def cost(self, axes: Sequence[SplineAxis]) -> float:
-        """Least-squares cost of the span on ``axes`` (window axes; cut to the span)."""
+    def cost(self, axes: Sequence[SplineAxis], screen: bool = False) -> float:
+        """Least-squares cost of the span on ``axes`` (window axes; cut to the span); with
+        ``screen``, the cost one Gauss-Newton step would reach, predicted from the start
+        (one Jacobian, no step taken)."""
         gap = self.cfg.knots.min_spacing
         cut = []
         for ax in axes:
@@ -344,6 +358,9 @@ class _LocalTrials:
             p = Problem(self.obs, {self.tid: (local, coef)}, self.cfg, self.a, self.b)
             # the window's white-jerk density: the same stiffness as the window's solve
             p.jerk_q.update({k: q for k, q in self.jerk_q.items() if k in p.jerk_q})
+            if self.stiff:  # the density away from events near them too: an event frees
+                # its jump, not the jerk around it
+                p.jerk_q.update({k: self.jerk_q.get((k[0], False)) for k in p.jerk_q})
             start = np.zeros(p.n)
             start[p.offsets[self.tid] : p.offsets[self.tid] + coef.size] = coef
             start[p.bias_offset : p.bias_offset + len(p.biases)] = p.bias_prior
@@ -354,6 +371,11 @@ class _LocalTrials:
                 self.gates = {k: v.copy() for k, v in p.gated.items()}
             else:
                 p.gated = {k: v.copy() for k, v in self.gates.items()}
+            if screen:
+                r, jac, _ = p.evaluate(start, True)
+                assert jac is not None
+                c = float(r @ r) - decrement(p, start, normal_matrix(jac), jac.T @ r)
+                return c if math.isfinite(c) else math.inf
             o = gauss_newton(p, start, self.cfg)
         except (ValueError, np.linalg.LinAlgError):
             return math.inf
@@ -375,8 +397,8 @@ def refine_event_times(
 ) -> tuple[dict[int, list[float]], int]:
     """The events ``found`` (per target), which ``prob`` holds on the axes ``before``
     (:func:`with_events`) and is solved for at ``beta``, each moved to the time of least
-    cost that :func:`_search` finds within ``SPAN / 2`` of it, the others held. Every trial
-    solves the measurements around the event afresh (:class:`_LocalTrials`) with only the
+    cost that :func:`search_time` finds within ``SPAN / 2`` of it, the others held. Every trial
+    solves the measurements around the event afresh (:class:`LocalTrials`) with only the
     gross errors gated (the values a misplaced jump spoils are the evidence of where it
     is) and no simple knot within reach of the search (the same freedom at every trial
     time). Returns the targets with a moved event and their event times, and the
@@ -392,13 +414,13 @@ def refine_event_times(
         for i, tau0 in enumerate(first):
             clear = _cleared(before[tid], tau0, limit + cfg.knots.min_spacing)
             others = taus[:i] + taus[i + 1 :]
-            trials = _LocalTrials(prob, beta, tid, tau0, obs, cfg, t0, t1, limit)
+            trials = LocalTrials(prob, beta, tid, tau0, obs, cfg, t0, t1, limit)
 
             def cost(
                 tau: float,
                 clear: list[SplineAxis] = clear,
                 others: list[float] = others,
-                trials: _LocalTrials = trials,
+                trials: LocalTrials = trials,
             ) -> float:
                 return trials.cost(with_events(clear, [*others, tau], cfg.knots.min_spacing))
 
@@ -409,11 +431,11 @@ def refine_event_times(
                 knotted: FloatArray = knotted,
                 spans: Sequence[Segment] = segments.get(tid, ()),
             ) -> bool:
-                return abs(tau - tau0) <= limit + 1e-9 and _allowed(
+                return abs(tau - tau0) <= limit + 1e-9 and event_allowed(
                     tau, others, knotted, spans, t0, t1
                 )
 
-            taus[i] = _search(cost, ok, tau0, reach)
+            taus[i] = search_time(cost, ok, tau0, reach)
             spent += trials.spent
         if taus != list(first):
             moved[tid] = taus
