@@ -322,6 +322,14 @@ class EstimatorNode(WindowOutputs, StationInputs):
                 'solution saw but did not knot; taken where the measurements ask for it.',
                 read_only=True,
             ),
+            event_time_uncertainty=declare(
+                self,
+                'event_time_uncertainty',
+                True,
+                "Add the uncertainty of each event's time (how well the measurements place it) "
+                'to the covariance of the states around it.',
+                read_only=True,
+            ),
             refine_events=declare(
                 self,
                 'refine_events',

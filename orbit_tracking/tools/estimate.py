@@ -259,6 +259,13 @@ def _window_summary(e: Estimate) -> dict[str, object]:
             for tid, sol in sorted(e.targets.items())
             if sol.jerk_density_near_events is not None
         },
+        # the events' times [s] and the sigmas [s] before and after them that the
+        # covariance carries
+        'event_times': {
+            int(tid): [[float(x) for x in row] for row in sol.event_times.sigmas]
+            for tid, sol in sorted(e.targets.items())
+            if sol.event_times is not None
+        },
         # where the covariance was made isotropic (beyond the linear range)
         'isotropic_spans': {
             int(tid): [[float(a), float(b)] for a, b in sol.isotropic_spans]

@@ -168,6 +168,10 @@ class EstimatorConfig:
         Without telemetry, test an event near each change of acceleration the first
         solution's detector saw (a doubtful change: no knots); taken where the measurements
         ask for it (:mod:`~orbit_tracking.core.estimation.doubtful_events`).
+    event_time_uncertainty : bool
+        Add the uncertainty of the events' times to the states' covariance, from how well
+        the measurements place each event (:mod:`~orbit_tracking.core.estimation.
+        event_times`).
     refine_events : bool
         Let that test also insert events (a knot of multiplicity ``degree - 1`` on every
         axis: the acceleration may jump there) where the measurements ask for one, outside
@@ -273,6 +277,7 @@ class EstimatorConfig:
     gate_event_rounds: int = 2
     move_events: bool = True
     doubtful_events: bool = True
+    event_time_uncertainty: bool = True
     biases: tuple[BiasParameter, ...] = ()
     bias_observability: float = 0.9
     thrust_along_velocity: float = 0.0

@@ -1,6 +1,6 @@
 """Trajectory estimation on a window of raw measurements (seed 000).
 
-(About 880 lines, over the ~600-line guide: the steps of one window solve, from the
+(About 900 lines, over the ~600-line guide: the steps of one window solve, from the
 knots to the verdict, read best in one place; its parts live in the modules it imports,
 the retries of a failed window in :mod:`~orbit_tracking.core.estimation.retries`.)
 
@@ -58,6 +58,7 @@ from orbit_tracking.core.estimation.coverage import (
     merge_segments,
 )
 from orbit_tracking.core.estimation.doubtful_events import doubtful_events
+from orbit_tracking.core.estimation.event_times import event_time_terms
 from orbit_tracking.core.estimation.gap_manoeuvres import unseen_spans, window_manoeuvres
 from orbit_tracking.core.estimation.gate_events import (
     event_knots,
@@ -574,6 +575,14 @@ def _estimate_once(
         out.decrement,
         cfg.max_unconverged_decrement,
     )
+    event_terms = {
+        tid: term
+        for tid, s in selections.items()
+        if cfg.event_time_uncertainty
+        and (term := event_time_terms(prob, out.beta, tid, s.events, s.kinks, obs, cfg, t0, t1))
+    }
+    for tid, term in event_terms.items():
+        tel_note += f'; target {tid} event times (sigmas in the covariance): {term.note()}'
     manoeuvres = {
         tid: window_manoeuvres(
             prob,
@@ -645,6 +654,7 @@ def _estimate_once(
             manoeuvres[tid],
             size_evidence.get(tid),
             prob.jerk_q.get((tid, True)),
+            event_terms.get(tid),
         )
     factors = {
         (b.station, f): float(b.factor[j])

@@ -347,6 +347,13 @@ class LocalTrials:
         """Least-squares cost of the span on ``axes`` (window axes; cut to the span); with
         ``screen``, the cost one Gauss-Newton step would reach, predicted from the start
         (one Jacobian, no step taken)."""
+        return self.solve(axes, screen)[0]
+
+    def solve(
+        self, axes: Sequence[SplineAxis], screen: bool = False
+    ) -> tuple[float, FloatArray | None]:
+        """:meth:`cost`, and the states (world position and velocity) on :attr:`ts` it
+        was solved to (None with ``screen`` or when the solve failed)."""
         gap = self.cfg.knots.min_spacing
         cut = []
         for ax in axes:
@@ -375,12 +382,15 @@ class LocalTrials:
                 r, jac, _ = p.evaluate(start, True)
                 assert jac is not None
                 c = float(r @ r) - decrement(p, start, normal_matrix(jac), jac.T @ r)
-                return c if math.isfinite(c) else math.inf
+                return (c if math.isfinite(c) else math.inf), None
             o = gauss_newton(p, start, self.cfg)
         except (ValueError, np.linalg.LinAlgError):
-            return math.inf
+            return math.inf, None
         self.spent += o.iterations
-        return o.cost if np.isfinite(o.cost) else math.inf
+        if not np.isfinite(o.cost):
+            return math.inf, None
+        o_t = p.offsets[self.tid]
+        return o.cost, local.states(o.beta[o_t : o_t + coef.size], self.ts)
 
 
 def refine_event_times(

@@ -14,6 +14,7 @@ from numpy.typing import NDArray
 
 from orbit_tracking.core.estimation.bspline import SplineAxis, SplineTrajectory
 from orbit_tracking.core.estimation.config import EstimationError, Segment
+from orbit_tracking.core.estimation.event_times import EventTimeTerms
 from orbit_tracking.core.estimation.gap_manoeuvres import GapManoeuvres
 from orbit_tracking.core.estimation.knots import KnotSelection
 from orbit_tracking.core.estimation.linearity import isotropic
@@ -51,7 +52,9 @@ class TargetSolution:
     evidence of the error sizes on the grid of
     :func:`~orbit_tracking.core.estimation.telemetry_evidence.evidence_grid`, this
     window's and its predecessors' (what the next window starts from; None without
-    telemetry fused or without the sizes estimated).
+    telemetry fused or without the sizes estimated). ``event_times`` is the consider term
+    of the uncertainty of its events' times, which :meth:`states` adds too
+    (:mod:`~orbit_tracking.core.estimation.event_times`; None when off or without events).
     """
 
     target_id: int
@@ -70,6 +73,7 @@ class TargetSolution:
     manoeuvres: GapManoeuvres | None = None
     telemetry_size_evidence: tuple[float, FloatArray] | None = None
     jerk_density_near_events: float | None = None
+    event_times: EventTimeTerms | None = None
 
     @property
     def t0(self) -> float:
@@ -87,6 +91,8 @@ class TargetSolution:
         cov = state_covariance(self.trajectory, self.covariance, tt, design)
         if self.manoeuvres is not None:
             cov = cov + self.manoeuvres.state_covariance(self.trajectory, tt, design)
+        if self.event_times is not None:
+            cov = cov + self.event_times.state_covariance(tt)
         if not self.isotropic_spans:
             return x, cov
         inside = np.zeros(tt.shape[0], dtype=bool)

@@ -166,21 +166,23 @@ class _Stitched:
 def _formal(
     sol: TargetSolution | _Stitched | SmoothedTrack,
 ) -> TargetSolution | _Stitched | SmoothedTrack:
-    """``sol`` without the consider term of the manoeuvres its incomplete segments may
-    hide and its events' knots may miss (``sol`` itself when it has none)."""
+    """``sol`` without the consider terms of the manoeuvres its incomplete segments may
+    hide and its events' knots may miss, and of its events' times (``sol`` itself when it
+    has none)."""
+
+    def bare(ts: TargetSolution) -> TargetSolution:
+        return dataclasses.replace(ts, manoeuvres=None, event_times=None)
+
     if isinstance(sol, TargetSolution):
-        return dataclasses.replace(sol, manoeuvres=None) if sol.manoeuvres else sol
+        return bare(sol) if sol.manoeuvres or sol.event_times else sol
     if isinstance(sol, _Stitched):
-        if not any(ts.manoeuvres for e in sol.estimates for ts in e.targets.values()):
+        if not any(
+            ts.manoeuvres or ts.event_times for e in sol.estimates for ts in e.targets.values()
+        ):
             return sol
         return _Stitched(
             [
-                dataclasses.replace(
-                    e,
-                    targets={
-                        k: dataclasses.replace(ts, manoeuvres=None) for k, ts in e.targets.items()
-                    },
-                )
+                dataclasses.replace(e, targets={k: bare(ts) for k, ts in e.targets.items()})
                 for e in sol.estimates
             ],
             sol.target_id,
@@ -200,7 +202,7 @@ def _evaluate(
     x, cov = sol.states(t)
     # the bound is the model's own information: without the manoeuvres the published
     # covariance adds for incomplete segments and around events (gap_ and
-    # event_manoeuvre_density); NEES takes the published covariance
+    # event_manoeuvre_density) and for the events' times; NEES takes the published one
     formal = _formal(sol)
     cov_f = cov if formal is sol else formal.states(t)[1]
     e = x - np.hstack([tr.position[m], tr.velocity[m]])
