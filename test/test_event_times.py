@@ -17,9 +17,10 @@ import pytest
 
 from orbit_tracking.core.estimation import event_times
 from orbit_tracking.core.estimation.estimator import estimate
-from orbit_tracking.core.metrics import nees
-from orbit_tracking.tools.bench.robustness_draw import _case
+from orbit_tracking.tools.bench.robustness_draw import _case, worst_sigma
 from orbit_tracking.tools.estimator_parameters import estimator_configs
+
+VELOCITY = slice(3, 6)
 
 
 def test_the_sigma_of_a_time_is_where_the_parabola_through_the_costs_rises_by_one():
@@ -51,13 +52,6 @@ def test_the_term_is_the_mean_of_the_two_sigma_points_outer_products_near_the_ev
     assert '10.000 s (-10/+10 ms)' in term.note()
 
 
-def _worst_velocity(est, case, a: float, b: float) -> float:
-    sel = (case.truth_t >= a) & (case.truth_t <= b)
-    x, cov = est.targets[0].states(case.truth_t[sel])
-    err = x - case.truth_x[sel]
-    return float(np.sqrt(nees(err[:, 3:6], cov[:, 3:6, 3:6]).max()))
-
-
 @pytest.mark.timeout(240)
 def test_velocities_beside_events_placed_tens_of_milliseconds_off_stay_within_5_sigma():
     case = _case('ascent', 67)
@@ -67,10 +61,10 @@ def test_velocities_beside_events_placed_tens_of_milliseconds_off_stay_within_5_
     est = estimate(case.obs_est, t0, t1, cfg)
     assert est.success, est.message
     assert 'event times (sigmas in the covariance)' in est.message, est.message
-    assert _worst_velocity(est, case, 30.5, 33.0) < 5.0
+    assert worst_sigma(est, case, 30.5, 33.0, VELOCITY) < 5.0
     off = estimate(case.obs_est, t0, t1, replace(cfg, event_time_uncertainty=False))
     assert off.success, off.message
-    assert _worst_velocity(off, case, 30.5, 33.0) > 5.0
+    assert worst_sigma(off, case, 30.5, 33.0, VELOCITY) > 5.0
     # away from the events the term adds nothing
     t = np.array([10.0, 20.0, 45.0])
     _, c_on = est.targets[0].states(t)

@@ -18,11 +18,12 @@ import pytest
 from orbit_tracking.core.estimation import estimator, gate_events
 from orbit_tracking.core.estimation.bspline import SplineAxis
 from orbit_tracking.core.estimation.estimator import estimate
-from orbit_tracking.core.metrics import nees
-from orbit_tracking.tools.bench.robustness_draw import _case
+from orbit_tracking.tools.bench.robustness_draw import _case, worst_sigma
 from orbit_tracking.tools.estimator_parameters import estimator_configs
 
 STAGING = 23.15  # the draw's first acceleration jump [s] (families.acceleration_jumps)
+
+VELOCITY = slice(3, 6)
 
 
 def test_only_rejections_gathered_within_the_span_make_a_cluster():
@@ -41,14 +42,6 @@ def test_an_event_replaces_the_simple_knots_beside_it_by_one_of_multiplicity_deg
     assert np.any(np.isclose(out.interior, 5.5)) and np.any(np.isclose(out.interior, 4.5))
 
 
-def _worst_velocity(est, case, a: float, b: float) -> float:
-    s = est.targets[0]
-    sel = (case.truth_t >= a) & (case.truth_t <= b)
-    x, cov = s.states(case.truth_t[sel])
-    err = x - case.truth_x[sel]
-    return float(np.sqrt(nees(err[:, 3:6], cov[:, 3:6, 3:6]).max()))
-
-
 @pytest.mark.timeout(180)
 def test_a_staging_the_telemetry_did_not_see_gets_its_event_from_the_gated_values():
     case = _case('ascent', 11)
@@ -59,12 +52,12 @@ def test_a_staging_the_telemetry_did_not_see_gets_its_event_from_the_gated_value
     assert 'gate rejections clustered' in est.message, est.message
     events = np.asarray(est.targets[0].knots.events)
     assert np.any(np.abs(events - STAGING) < 0.05), events
-    assert _worst_velocity(est, case, STAGING - 0.5, STAGING + 0.5) < 5.0
+    assert worst_sigma(est, case, STAGING - 0.5, STAGING + 0.5, VELOCITY) < 5.0
     # without it: the same window's velocity beside the staging beyond 5 sigma
     off = estimate(case.obs_est, 0.0, 60.0, replace(cfg, gate_event_rounds=0))
     assert off.success, off.message
     assert 'gate rejections clustered' not in off.message
-    assert _worst_velocity(off, case, STAGING - 0.5, STAGING + 0.5) > 5.0
+    assert worst_sigma(off, case, STAGING - 0.5, STAGING + 0.5, VELOCITY) > 5.0
 
 
 def test_the_parabola_through_three_points_has_its_vertex_at_their_minimum():
@@ -108,19 +101,19 @@ def test_the_measurements_place_a_gate_event_where_the_acceleration_jumped(monke
     assert est.success, est.message
     events = np.asarray(est.targets[0].knots.events)
     assert np.min(np.abs(events - CUT_OFF)) < 0.005, events
-    assert _worst_velocity(est, case, CUT_OFF - 0.5, CUT_OFF + 0.5) < 5.0
+    assert worst_sigma(est, case, CUT_OFF - 0.5, CUT_OFF + 0.5, VELOCITY) < 5.0
     # the search alone, without the events' time term in the covariance (which widens
     # the sigmas beside an event the measurements place badly)
     plain = replace(cfg, event_time_uncertainty=False)
     est = estimate(case.obs_est, 0.0, 60.0, plain)
-    assert _worst_velocity(est, case, CUT_OFF - 0.5, CUT_OFF + 0.5) < 5.0
+    assert worst_sigma(est, case, CUT_OFF - 0.5, CUT_OFF + 0.5, VELOCITY) < 5.0
     # the event at the rejections' median: the velocity beside it beyond 5 sigma
     monkeypatch.setattr(estimator, 'refine_event_times', lambda *a, **k: ({}, 0))
     off = estimate(case.obs_est, 0.0, 60.0, plain)
     assert off.success, off.message
     events = np.asarray(off.targets[0].knots.events)
     assert np.min(np.abs(events - CUT_OFF)) > 0.015, events
-    assert _worst_velocity(off, case, CUT_OFF - 0.5, CUT_OFF + 0.5) > 5.0
+    assert worst_sigma(off, case, CUT_OFF - 0.5, CUT_OFF + 0.5, VELOCITY) > 5.0
 
 
 def test_no_event_goes_within_a_second_of_an_incomplete_segment():
@@ -143,10 +136,7 @@ def test_positions_in_a_segment_two_cw_radars_see_stay_honest_beside_gate_events
     t0, t1 = 0.0067, 60.0067  # the benchmark's first window
 
     def worst_position(est) -> float:
-        sel = (case.truth_t >= 27.9) & (case.truth_t <= 43.6)
-        x, cov = est.targets[0].states(case.truth_t[sel])
-        err = x - case.truth_x[sel]
-        return float(np.sqrt(nees(err[:, :3], cov[:, :3, :3]).max()))
+        return worst_sigma(est, case, 27.9, 43.6, slice(0, 3))
 
     est = estimate(case.obs_est, t0, t1, cfg)
     assert est.success, est.message

@@ -18,9 +18,10 @@ import pytest
 from orbit_tracking.core.estimation import gate_events
 from orbit_tracking.core.estimation.bspline import SplineAxis, SplineTrajectory
 from orbit_tracking.core.estimation.estimator import estimate
-from orbit_tracking.core.metrics import nees
-from orbit_tracking.tools.bench.robustness_draw import _case
+from orbit_tracking.tools.bench.robustness_draw import _case, worst_sigma
 from orbit_tracking.tools.estimator_parameters import estimator_configs
+
+VELOCITY = slice(3, 6)
 
 
 def test_the_events_on_a_spline_are_its_repeated_knots_not_its_kinks_and_can_be_taken_off():
@@ -45,13 +46,6 @@ def test_with_a_reach_the_search_finds_the_deeper_valley_beyond_a_local_one():
     assert far == pytest.approx(10.4, abs=0.002)
 
 
-def _worst_velocity(est, case, a: float, b: float) -> float:
-    sel = (case.truth_t >= a) & (case.truth_t <= b)
-    x, cov = est.targets[0].states(case.truth_t[sel])
-    err = x - case.truth_x[sel]
-    return float(np.sqrt(nees(err[:, 3:6], cov[:, 3:6, 3:6]).max()))
-
-
 @pytest.mark.timeout(240)
 def test_the_measurements_move_a_telemetry_event_half_a_second_to_where_the_stage_ignited():
     case = _case('ascent', 35)
@@ -64,15 +58,15 @@ def test_the_measurements_move_a_telemetry_event_half_a_second_to_where_the_stag
     assert 'events of the rough trajectory moved' in est.message, est.message
     events = np.asarray(est.targets[0].knots.events)
     assert np.all(np.min(np.abs(events[:, None] - true[None, :]), axis=0) < 0.02), events
-    assert _worst_velocity(est, case, 23.0, 24.6) < 5.0
+    assert worst_sigma(est, case, 23.0, 24.6, VELOCITY) < 5.0
     # the search alone, without the events' time term in the covariance (which widens
     # the sigmas beside an event the measurements place badly)
     plain = replace(cfg, event_time_uncertainty=False)
-    assert _worst_velocity(estimate(case.obs_est, t0, t1, plain), case, 23.0, 24.6) < 5.0
+    assert worst_sigma(estimate(case.obs_est, t0, t1, plain), case, 23.0, 24.6, VELOCITY) < 5.0
     # where the telemetry put them: the second event over 0.5 s late, the velocity beside
     # the jumps beyond 5 sigma
     off = estimate(case.obs_est, t0, t1, replace(plain, move_events=False))
     assert off.success, off.message
     events = np.asarray(off.targets[0].knots.events)
     assert np.max(np.min(np.abs(events[:, None] - true[None, :]), axis=0)) > 0.5, events
-    assert _worst_velocity(off, case, 23.0, 24.6) > 5.0
+    assert worst_sigma(off, case, 23.0, 24.6, VELOCITY) > 5.0

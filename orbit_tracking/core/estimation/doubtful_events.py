@@ -71,8 +71,10 @@ class _Doubtful:
         cfg: EstimatorConfig,
         t0: float,
         t1: float,
+        scale: float,
     ) -> None:
         self.knotted = prob.trajs[tid].repeated_knots()
+        self.scale = scale
         self.spans = segments
         self.axes = list(prob.trajs[tid].axes)
         self.taken: list[float] = []
@@ -110,7 +112,7 @@ class _Doubtful:
         first = min(screened, key=lambda t: screened[t])
         new = with_events(axes, [first], self.min_spacing)
         added = sum(b.interior.size - a.interior.size for a, b in zip(axes, new, strict=True))
-        limit = float(chi2_dist.ppf(1.0 - DOUBT_ALPHA, max(added, 0) + 1))
+        limit = self.scale * float(chi2_dist.ppf(1.0 - DOUBT_ALPHA, max(added, 0) + 1))
         if base - screened[first] < 0.5 * limit:
             return d, -math.inf
         costs: dict[float, float] = {}
@@ -151,6 +153,7 @@ def doubtful_events(
     cfg: EstimatorConfig,
     t0: float,
     t1: float,
+    scale: float = 1.0,
 ) -> tuple[dict[int, list[float]], int]:
     """Events at the ``doubtful`` changes (per target) that the measurements ask for.
     Around each (not within :data:`ECHO` of an event knotted), an event's time is
@@ -159,7 +162,8 @@ def doubtful_events(
     event frees its jump, not the jerk around it) and the simple knots kept: a grid
     screened by one predicted Gauss-Newton step each, then the search from its best. Its
     gain is how far its least cost lies below the cost without it, beyond the chi-square
-    of the parameters it adds and its time at ``1 -`` :data:`DOUBT_ALPHA`. The event of
+    of the parameters it adds and its time at ``1 -`` :data:`DOUBT_ALPHA` (times ``scale``,
+    the window's chi-square per degree of freedom when above one). The event of
     largest positive gain is taken, the searches within ``DOUBT_REACH`` of it made again
     with it, and so on: a jump's misfit spreads, and an event a second beside it gains
     too. Returns the targets with events taken and their times, and the Gauss-Newton
@@ -168,7 +172,7 @@ def doubtful_events(
     spent = 0
     for tid, cands in doubtful.items():
         taken, it = _Doubtful(
-            prob, beta, tid, cands, segments.get(tid, ()), obs, cfg, t0, t1
+            prob, beta, tid, cands, segments.get(tid, ()), obs, cfg, t0, t1, scale
         ).run()
         spent += it
         if taken:

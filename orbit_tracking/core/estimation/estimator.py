@@ -507,7 +507,12 @@ def _estimate_once(
             for tid, s in selections.items()
             if s.rough_source == 'fixes, then first solution'
         }
-        asked, it_asked = doubtful_events(prob, out.beta, doubts, segments, obs, cfg, t0, t1)
+        fit = float(r @ r) / max(r.size - prob.n, 1)
+        if fit > REFINE_MAX_CHI2:  # as the knot test: the gains assume the model fits
+            doubts = {}
+        asked, it_asked = doubtful_events(
+            prob, out.beta, doubts, segments, obs, cfg, t0, t1, max(fit, 1.0)
+        )
         iterations += it_asked
         if asked:
             asked = placed({tid: prob.trajs[tid].axes for tid in asked}, asked)

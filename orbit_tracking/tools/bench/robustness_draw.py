@@ -85,6 +85,7 @@ __all__ = [
     'MethodResult',
     'run_draw',
     'tune_kalman',
+    'worst_sigma',
 ]
 
 FloatArray = NDArray[np.float64]
@@ -307,6 +308,16 @@ def _d2(e: FloatArray, cov: FloatArray) -> FloatArray:
         return nees(e, cov)
     except np.linalg.LinAlgError:
         return np.full(e.shape[0], np.inf)
+
+
+def worst_sigma(est: Estimate, case: _Case, a: float, b: float, rows: slice) -> float:
+    """The largest error, in sigmas of its covariance, of target 0's states ``rows`` (the
+    position ``slice(0, 3)`` or the velocity ``slice(3, 6)``) in window ``est`` at
+    ``case``'s truth times from ``a`` to ``b``."""
+    sel = (case.truth_t >= a) & (case.truth_t <= b)
+    x, cov = est.targets[0].states(case.truth_t[sel])
+    err = (x - case.truth_x[sel])[:, rows]
+    return float(np.sqrt(_d2(err, cov[:, rows, rows]).max()))
 
 
 def _score(
