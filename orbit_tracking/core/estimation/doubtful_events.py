@@ -74,7 +74,7 @@ class _Doubtful:
         scale: float,
     ) -> None:
         self.knotted = prob.trajs[tid].repeated_knots()
-        self.scale = scale
+        self.scale = max(scale, 1.0)
         self.spans = segments
         self.axes = list(prob.trajs[tid].axes)
         self.taken: list[float] = []
@@ -163,7 +163,7 @@ def doubtful_events(
     screened by one predicted Gauss-Newton step each, then the search from its best. Its
     gain is how far its least cost lies below the cost without it, beyond the chi-square
     of the parameters it adds and its time at ``1 -`` :data:`DOUBT_ALPHA` (times ``scale``,
-    the window's chi-square per degree of freedom when above one). The event of
+    the window's chi-square per degree of freedom, when above one). The event of
     largest positive gain is taken, the searches within ``DOUBT_REACH`` of it made again
     with it, and so on: a jump's misfit spreads, and an event a second beside it gains
     too. Returns the targets with events taken and their times, and the Gauss-Newton

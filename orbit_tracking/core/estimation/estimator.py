@@ -58,7 +58,7 @@ from orbit_tracking.core.estimation.coverage import (
     merge_segments,
 )
 from orbit_tracking.core.estimation.doubtful_events import doubtful_events
-from orbit_tracking.core.estimation.event_times import event_time_terms
+from orbit_tracking.core.estimation.event_times import window_event_terms
 from orbit_tracking.core.estimation.gap_manoeuvres import unseen_spans, window_manoeuvres
 from orbit_tracking.core.estimation.gate_events import (
     event_knots,
@@ -507,12 +507,9 @@ def _estimate_once(
             for tid, s in selections.items()
             if s.rough_source == 'fixes, then first solution'
         }
-        fit = float(r @ r) / max(r.size - prob.n, 1)
-        if fit > REFINE_MAX_CHI2:  # as the knot test: the gains assume the model fits
-            doubts = {}
-        asked, it_asked = doubtful_events(
-            prob, out.beta, doubts, segments, obs, cfg, t0, t1, max(fit, 1.0)
-        )
+        fit = float(r @ r) / max(r.size - prob.n, 1)  # as the knot test: the gains assume
+        doubts = doubts if fit <= REFINE_MAX_CHI2 else {}  # that the model fits
+        asked, it_asked = doubtful_events(prob, out.beta, doubts, segments, obs, cfg, t0, t1, fit)
         iterations += it_asked
         if asked:
             asked = placed({tid: prob.trajs[tid].axes for tid in asked}, asked)
@@ -580,14 +577,8 @@ def _estimate_once(
         out.decrement,
         cfg.max_unconverged_decrement,
     )
-    event_terms = {
-        tid: term
-        for tid, s in selections.items()
-        if cfg.event_time_uncertainty
-        and (term := event_time_terms(prob, out.beta, tid, s.events, s.kinks, obs, cfg, t0, t1))
-    }
-    for tid, term in event_terms.items():
-        tel_note += f'; target {tid} event times (sigmas in the covariance): {term.note()}'
+    event_terms, event_note = window_event_terms(prob, out.beta, selections, obs, cfg, t0, t1)
+    tel_note += event_note
     manoeuvres = {
         tid: window_manoeuvres(
             prob,

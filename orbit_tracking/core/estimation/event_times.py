@@ -25,7 +25,7 @@ side, minus those at ``tau``, are two sigma points ``d+`` and ``d-``, and the te
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,9 +40,10 @@ from orbit_tracking.core.estimation.gate_events import (
     event_knots,
     with_events,
 )
+from orbit_tracking.core.estimation.knots import KnotSelection
 from orbit_tracking.core.estimation.problem import Problem
 
-__all__ = ['MAX_SIGMA', 'STEP', 'EventTimeTerms', 'event_time_terms']
+__all__ = ['MAX_SIGMA', 'STEP', 'EventTimeTerms', 'event_time_terms', 'window_event_terms']
 
 FloatArray = NDArray[np.float64]
 
@@ -173,3 +174,28 @@ def event_time_terms(
     if not ts_all:
         return None
     return EventTimeTerms(tuple(ts_all), tuple(plus), tuple(minus), tuple(sigmas))
+
+
+def window_event_terms(
+    prob: Problem,
+    beta: FloatArray,
+    selections: Mapping[int, KnotSelection],
+    obs: Observations,
+    cfg: EstimatorConfig,
+    t0: float,
+    t1: float,
+) -> tuple[dict[int, EventTimeTerms], str]:
+    """:func:`event_time_terms` of every target with events (none when
+    ``cfg.event_time_uncertainty`` is off), and the note for the window's message."""
+    out: dict[int, EventTimeTerms] = {}
+    if not cfg.event_time_uncertainty:
+        return out, ''
+    for tid, s in selections.items():
+        term = event_time_terms(prob, beta, tid, s.events, s.kinks, obs, cfg, t0, t1)
+        if term is not None:
+            out[tid] = term
+    note = ''.join(
+        f'; target {tid} event times (sigmas in the covariance): {term.note()}'
+        for tid, term in out.items()
+    )
+    return out, note
