@@ -242,16 +242,19 @@ def _turn_window(density: float):
     )
 
 
-def _staging_without_telemetry(density: float):
+def _staging_without_telemetry(density: float, doubtful_events: bool = False):
     """Robustness draw ascent 7 (no telemetry: the rough trajectory is the fixes, then the
     first solution), its window 0-60 s over a staging at 16.19 and 18.52 s. The window,
-    its knot selection and the velocity Mahalanobis distances on a 0.1 s grid."""
+    its knot selection and the velocity Mahalanobis distances on a 0.1 s grid (by default
+    without the events the measurements ask for at doubtful changes: the consider term
+    alone)."""
     from orbit_tracking.core.estimation.config import EstimatorConfig
     from orbit_tracking.core.estimation.estimator import estimate
     from orbit_tracking.tools.bench.robustness_draw import _case
 
     case = _case('ascent', 7)
-    est = estimate(case.obs_est, 0.0, 60.0, EstimatorConfig(event_manoeuvre_density=density))
+    cfg = EstimatorConfig(event_manoeuvre_density=density, doubtful_events=doubtful_events)
+    est = estimate(case.obs_est, 0.0, 60.0, cfg)
     sol = est.targets[0]
     sel = (case.truth_t >= 0.0) & (case.truth_t <= 60.0)
     tt = case.truth_t[sel][::2]
@@ -277,6 +280,12 @@ def test_a_staging_only_the_first_solution_shows_is_doubtful_and_covered() -> No
     assert np.sum(maha > 5.0) <= 5
     _, _, maha_off = _staging_without_telemetry(0.0)
     assert np.sum(maha_off > 5.0) >= 12
+    # with the test at the doubtful changes (the default), events the measurements asked
+    # for beside the first jump, and the states as honest as with the term alone
+    est, knots, maha = _staging_without_telemetry(30.0, doubtful_events=True)
+    assert est.success, est.message
+    assert knots.events and np.min(np.abs(np.asarray(knots.events) - 16.19)) < 0.2
+    assert np.sum(maha > 5.0) <= 5
 
 
 def _turn_in_an_outage(density: float):
